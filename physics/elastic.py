@@ -22,50 +22,44 @@ import torch
 from torch import Tensor
 
 from .errors import SolverError
+from .lie import mtm3, mtv3, mv3
 from .rod import RodParams
 
-__all__ = ["elastic_energy", "internal_loads", "relative_cayley"]
+__all__ = ["elastic_energy", "internal_loads", "relative_cayley", "skew_and_trace"]
+
+
+_SKEW_P = [7, 2, 3]  # flat indices of R21, R02, R10
+_SKEW_M = [5, 6, 1]  # flat indices of R12, R20, R01
 
 
 def _cross(a: Tensor, b: Tensor) -> Tensor:
-    a0, a1, a2 = a.unbind(-1)
-    b0, b1, b2 = b.unbind(-1)
-    return torch.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), -1)
+    return torch.linalg.cross(a, b, dim=-1)
 
 
-def _mT_vec(R: Tensor, v: Tensor) -> Tensor:
-    """R^T v for (..., 3, 3) and (..., 3) without generic matmul dispatch."""
-    return (R * v[..., :, None]).sum(-2)
-
-
-def _m_vec(R: Tensor, v: Tensor) -> Tensor:
-    return (R * v[..., None, :]).sum(-1)
+def skew_and_trace(M: Tensor):
+    """(vee(M - M^T), 1 + tr M) with few kernel launches."""
+    flat = M.flatten(-2)
+    return flat[..., _SKEW_P] - flat[..., _SKEW_M], 1.0 + flat[..., ::4].sum(-1)
 
 
 def relative_cayley(R: Tensor, check: bool = True) -> Tensor:
     """``cay_inv(R_a^T R_b)`` for every element: (..., n, 3, 3) -> (..., n-1, 3)."""
-    Ra, Rb = R[..., :-1, :, :], R[..., 1:, :, :]
-    Rab = Ra.transpose(-1, -2) @ Rb
-    den = 1.0 + Rab[..., 0, 0] + Rab[..., 1, 1] + Rab[..., 2, 2]
+    Rab = mtm3(R[..., :-1, :, :], R[..., 1:, :, :])
+    s, den = skew_and_trace(Rab)
     if check:
         bad = den <= 1e3 * torch.finfo(R.dtype).eps
         if bool(bad.any()):
             elem = int(bad.nonzero()[0, -1])
             raise SolverError("element bent by a half turn: relative rotation has no Cayley coordinates",
                               node=elem)
-    s = torch.stack((Rab[..., 2, 1] - Rab[..., 1, 2], Rab[..., 0, 2] - Rab[..., 2, 0],
-                     Rab[..., 1, 0] - Rab[..., 0, 1]), -1)
     return 2.0 * s / den[..., None]
 
 
 def _strains(p: Tensor, R: Tensor, prm: RodParams):
-    l = prm.l[..., None]
-    d = p[..., 1:, :] - p[..., :-1, :]
-    Ga = _mT_vec(R[..., :-1, :, :], d) / l
-    Gb = _mT_vec(R[..., 1:, :, :], d) / l
-    e3 = torch.zeros_like(Ga)
-    e3[..., 2] = 1.0
-    return Ga, Gb, e3
+    d = (p[..., 1:, :] - p[..., :-1, :]) / prm.l[..., None]
+    e3 = torch.zeros(3, dtype=p.dtype, device=p.device)
+    e3[2] = 1.0
+    return mtv3(R[..., :-1, :, :], d), mtv3(R[..., 1:, :, :], d), e3
 
 
 def elastic_energy(p: Tensor, R: Tensor, prm: RodParams) -> Tensor:
@@ -87,7 +81,7 @@ def internal_loads(p: Tensor, R: Tensor, prm: RodParams, psi: Tensor | None = No
     Ga, Gb, e3 = _strains(p, R, prm)
     l = prm.l[..., None]
     n = prm.C1 * (0.5 * (Ga + Gb) - e3)  # internal force in the averaged body frame
-    n_w = 0.5 * (_m_vec(R[..., :-1, :, :], n) + _m_vec(R[..., 1:, :, :], n))
+    n_w = 0.5 * mv3(R[..., :-1, :, :] + R[..., 1:, :, :], n)
     if psi is None:
         psi = relative_cayley(R)
     m = prm.C2 * (psi / l - prm.kappa0)

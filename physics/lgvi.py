@@ -30,6 +30,7 @@ from torch import Tensor
 
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
+from .lie import hat, mm3, mtm3, mtv3
 from .loads import Loads, magnet_node_loads
 from .rod import Rod, RodParams
 
@@ -88,16 +89,13 @@ def solve_cayley(u: Tensor, J: Tensor, tol: float, max_iter: int = 20, fixed_ite
     """
     f = u / (2 * J)
     n_it = fixed_iters if fixed_iters is not None else max_iter
+    U = hat(u) - 2 * torch.diag_embed(J)  # the f-independent part of the Jacobian
+    eye = torch.eye(3, dtype=u.dtype, device=u.device)
     it = 0
     for it in range(1, n_it + 1):
-        G = _cayley_residual(f, u, J)
-        uf = (u * f).sum(-1)
-        ux, uy, uz = u.unbind(-1)
-        A = torch.stack((
-            torch.stack((uf - 2 * J[..., 0], -uz, uy), -1),
-            torch.stack((uz, uf - 2 * J[..., 1], -ux), -1),
-            torch.stack((-uy, ux, uf - 2 * J[..., 2]), -1),
-        ), -2) + f[..., :, None] * u[..., None, :]
+        uf = (u * f).sum(-1, keepdim=True)
+        G = u + torch.linalg.cross(u, f, dim=-1) + uf * f - 2 * J * f
+        A = U + uf[..., None] * eye + f.unsqueeze(-1) * u.unsqueeze(-2)
         df = _solve3(A, -G)
         f = f + df
         if fixed_iters is None and float(df.abs().max()) <= tol:
@@ -113,7 +111,7 @@ def _cay2(f: Tensor) -> Tensor:
     Fh = torch.stack((o, -fz, fy, fz, o, -fx, -fy, fx, o), -1).reshape(*f.shape, 3)
     c = 2.0 / (1.0 + (f * f).sum(-1))
     eye = torch.eye(3, dtype=f.dtype, device=f.device)
-    return eye + c[..., None, None] * (Fh + Fh @ Fh)
+    return eye + c[..., None, None] * (Fh + mm3(Fh, Fh))
 
 
 @dataclass
@@ -142,7 +140,10 @@ class LGVI:
     check_every: int = 1
 
     def __post_init__(self):
-        self.bc = Boundary(self.bc)
+        try:
+            self.bc = Boundary(self.bc)
+        except ValueError:
+            raise ValueError(f"LGVI.bc must be one of {[b.value for b in Boundary]}, got {self.bc!r}") from None
         if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"LGVI.dt must be a finite positive time step (s), got {self.dt!r}")
         if self.stability not in ("raise", "warn", "off"):
@@ -183,6 +184,7 @@ class LGVI:
         if self._gravity is not None and self._gravity.shape[-1] != 3:
             raise ValueError(f"Loads.gravity must be a 3-vector, got shape {tuple(self._gravity.shape)}")
         self._has_magnets = self.params.magnet_elem.numel() > 0 and self.loads.field is not None
+        self._compiled = {}
 
     # ------------------------------------------------------------------ states
     def initial_state(self, p: Tensor | None = None, R: Tensor | None = None, v: Tensor | None = None,
@@ -210,71 +212,130 @@ class LGVI:
         tol = 1e-9 if self.dtype == torch.float64 else 1e-4
         if float(orth) > tol or bool((torch.linalg.det(R) <= 0).any()):
             raise ValueError(f"initial_state: R must be proper rotations (max |R^T R - I| = {float(orth):.2e})")
-        p, R = torch.broadcast_tensors(p[..., None], R)[0][..., 0], R
+        p = torch.broadcast_tensors(p[..., None], R)[0][..., 0]
         v = torch.zeros_like(p) if v is None else torch.as_tensor(v, **kw).expand_as(p).clone()
-        pi = torch.zeros_like(p) if omega is None else prm.inertia * torch.as_tensor(omega, **kw)
-        return LGVIState(float(t), p, v * self._free, R, pi * self._free, 0)
+        pi = torch.zeros_like(p) if omega is None else prm.inertia * torch.as_tensor(omega, **kw).expand_as(p)
+        # the state holds v^{-1/2} and the momentum before the first torque kick: step back half a
+        # kick from the given velocities (velocity-Verlet start, keeps the scheme second order)
+        state = LGVIState(float(t), p, v * self._free, R, pi * self._free, 0)
+        return self._half_kick(state, -0.5)
+
+    def _half_kick(self, state: LGVIState, frac: float) -> LGVIState:
+        """Velocities and momenta advanced by ``frac * dt`` of the current loads."""
+        prm, h = self.params, self.dt
+        psi = relative_cayley(state.R)
+        fi, ti = internal_loads(state.p, state.R, prm, psi)
+        fe, te = self.external_loads(self._tensor_time(state.t), state.p, state.v, state.R, state.pi, psi)
+        v = (state.v + frac * h * (fi + fe) / prm.mass[..., None]) * self._free
+        pi = (state.pi + frac * h * (ti + te)) * self._free
+        return state._replace(v=v, pi=pi)
 
     # ------------------------------------------------------------------ loads
-    def external_loads(self, state: LGVIState, psi: Tensor):
-        """World forces and body torques (..., n, 3) from gravity, user wrenches, magnets, damping."""
+    def external_loads(self, t: Tensor, p: Tensor, v: Tensor, R: Tensor, pi: Tensor, psi: Tensor):
+        """World forces and body torques (..., n, 3) from gravity, user wrenches, magnets and
+        damping at time ``t`` (a 0-d tensor, also what time-dependent load callables receive)."""
         prm = self.params
-        p, R = state.p, state.R
-        force = -prm.damping * state.v
-        torque = -prm.rot_damping * (state.pi / prm.inertia)
+        force = -prm.damping * v
+        torque = -prm.rot_damping * (pi / prm.inertia)
         if self._gravity is not None:
             force = force + prm.mass[..., None] * self._gravity
-        fu = self.loads.evaluate_force(state.t)
+        fu = self.loads.evaluate_force(t)
         if fu is not None:
             force = force + torch.as_tensor(fu, dtype=self.dtype, device=self.device)
-        tu = self.loads.evaluate_torque(state.t)
+        tu = self.loads.evaluate_torque(t)
         if tu is not None:
-            tu = torch.as_tensor(tu, dtype=self.dtype, device=self.device).expand_as(p)
-            torque = torque + (R * tu[..., :, None]).sum(-2)
+            tu = torch.as_tensor(tu, dtype=self.dtype, device=self.device)
+            torque = torque + mtv3(R, tu)
         if self._has_magnets:
-            fm, tm = magnet_node_loads(self.loads.field, state.t, p, R, psi, prm)
+            fm, tm = magnet_node_loads(self.loads.field, t, p, R, psi, prm)
             force, torque = force + fm, torque + tm
         return force, torque
 
     # ------------------------------------------------------------------ stepping
+    def _advance(self, t: Tensor, p: Tensor, v: Tensor, R: Tensor, pi: Tensor, fixed_iters: int | None,
+                 check: bool = True):
+        """The pure update (eager and compiled paths share it)."""
+        prm, h = self.params, self.dt
+        psi = relative_cayley(R, check=check)
+        fi, ti = internal_loads(p, R, prm, psi)
+        fe, te = self.external_loads(t, p, v, R, pi, psi)
+        free = self._free
+        v1 = (v + (h / prm.mass[..., None]) * (fi + fe)) * free
+        p1 = p + h * v1
+        Pi = (pi + h * (ti + te)) * free
+        f, iters, res = solve_cayley(h * Pi, prm.inertia, self.newton_tol, self.newton_max_iter, fixed_iters)
+        F = _cay2(f)
+        R1 = mm3(R, F)
+        pi1 = mtv3(F, Pi)  # F^T Pi
+        t1 = t + h
+        if self.bc is Boundary.PRESCRIBED_BASE:
+            p1, v1, R1, pi1 = self._apply_base(p, R, p1, v1, R1, pi1, t1)
+        return t1, p1, v1, R1, pi1, iters, res
+
+    def _tensor_time(self, t: float) -> Tensor:
+        return torch.tensor(t, dtype=self.dtype, device=self.device)
+
     def step(self, state: LGVIState, *, _return_info: bool = False):
         """One step ``t -> t + dt`` (pure: inputs are not modified)."""
-        prm, h = self.params, self.dt
-        psi = relative_cayley(state.R)
-        fi, ti = internal_loads(state.p, state.R, prm, psi)
-        fe, te = self.external_loads(state, psi)
-        free = self._free
-        v = (state.v + (h / prm.mass[..., None]) * (fi + fe)) * free
-        p = state.p + h * v
-        Pi = (state.pi + h * (ti + te)) * free
-        f, iters, res = solve_cayley(h * Pi, prm.inertia, self.newton_tol, self.newton_max_iter, self.newton_iters)
-        F = _cay2(f)
-        R = state.R @ F
-        pi = (F * Pi[..., :, None]).sum(-2)  # F^T Pi
-        t = state.t + h
-        if self.bc is Boundary.PRESCRIBED_BASE:
-            p, v, R, pi = self._apply_base(state, p, v, R, pi, t)
-        new = LGVIState(t, p, v, R, pi, state.step + 1)
+        _, p, v, R, pi, iters, res = self._advance(self._tensor_time(state.t), state.p, state.v, state.R,
+                                                   state.pi, self.newton_iters)
+        new = LGVIState(state.t + self.dt, p, v, R, pi, state.step + 1)
         return (new, (iters, res)) if _return_info else new
 
-    def _apply_base(self, state, p, v, R, pi, t):
+    def _apply_base(self, p_old, R_old, p, v, R, pi, t):
         p0, R0 = self.base_motion(t)
         kw = dict(dtype=self.dtype, device=self.device)
         p0 = torch.as_tensor(p0, **kw).expand_as(p[..., 0, :])
         R0 = torch.as_tensor(R0, **kw).expand_as(R[..., 0, :, :])
-        F0 = state.R[..., 0, :, :].transpose(-1, -2) @ R0
-        Jd = self.params.inertia_d[..., 0, :]
-        A = F0 * Jd[..., None, :]
+        F0 = mtm3(R_old[..., 0, :, :], R0)
+        A = F0 * self.params.inertia_d[..., 0, None, :]
         W = A - A.transpose(-1, -2)  # F J_d - J_d F^T
         Pi0 = torch.stack((W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]), -1) / self.dt
-        pi0 = (F0 * Pi0[..., :, None]).sum(-2)
-        v0 = (p0 - state.p[..., 0, :]) / self.dt
+        pi0 = mtv3(F0, Pi0)
+        v0 = (p0 - p_old[..., 0, :]) / self.dt
 
         def put(x, x0):  # replace node 0
             return torch.cat((x0.unsqueeze(-2), x[..., 1:, :]), -2)
 
         R = torch.cat((R0.unsqueeze(-3), R[..., 1:, :, :]), -3)
         return put(p, p0), put(v, v0), R, put(pi, pi0)
+
+    # ------------------------------------------------------------------ compiled fused steps
+    def compiled_rollout(self, state: LGVIState, n_steps: int, steps_per_call: int = 10,
+                         newton_iters: int = 3, record_every: int | None = None):
+        """Advance with ``torch.compile`` fusing ``steps_per_call`` steps per call (fixed Newton
+        count). Finiteness and the Newton residual are checked after each call; a failing call is
+        replayed eagerly to report the exact step. Returns ``(state, positions (..., T, n, 3))``
+        with positions recorded every ``record_every`` calls' worth of steps (None: final only).
+        The first call compiles (seconds); time it separately.
+        """
+        if n_steps % steps_per_call:
+            raise ValueError(f"compiled_rollout: n_steps={n_steps} must be a multiple of steps_per_call={steps_per_call}")
+        fn = self._compiled.get((steps_per_call, newton_iters))
+        if fn is None:
+            def fused(t, p, v, R, pi):
+                res_max = torch.zeros((), dtype=p.dtype, device=p.device)
+                for _ in range(steps_per_call):
+                    t, p, v, R, pi, _, res = self._advance(t, p, v, R, pi, newton_iters, check=False)
+                    res_max = torch.maximum(res_max, res.amax())
+                return t, p, v, R, pi, res_max
+            fn = torch.compile(fused, dynamic=False, fullgraph=False)
+            self._compiled[(steps_per_call, newton_iters)] = fn
+        t = self._tensor_time(state.t)
+        p, v, R, pi = state.p, state.v, state.R, state.pi
+        rec = [p] if record_every else None
+        tol = max(1e3 * self.newton_tol, 1e-10 if self.dtype == torch.float64 else 1e-4)
+        for c in range(n_steps // steps_per_call):
+            good = LGVIState(state.t + c * steps_per_call * self.dt, p, v, R, pi, state.step + c * steps_per_call)
+            t, p, v, R, pi, res = fn(t, p, v, R, pi)
+            if not (bool(torch.isfinite(p).all()) and float(res) <= tol):
+                self._replay(good, good.step + steps_per_call)
+                raise SolverError("compiled rollout failed but the eager replay did not",
+                                  step=good.step, time=good.t)
+            if record_every and (c + 1) % record_every == 0:
+                rec.append(p)
+        out = LGVIState(state.t + n_steps * self.dt, p, v, R, pi, state.step + n_steps)
+        return out, (torch.stack(rec, -3) if record_every else None)
 
     def _check(self, state: LGVIState, res: Tensor | None, label: str = ""):
         bad = ~(torch.isfinite(state.p).all(-1) & torch.isfinite(state.R).flatten(-2).all(-1))
@@ -350,12 +411,9 @@ class LGVI:
     def energy(self, state: LGVIState) -> Tensor:
         """Total energy (...,): kinetic with velocities and momenta advanced half a step to
         ``t`` (velocity-Verlet form, O(h^2) accurate, no drift) plus elastic and gravity."""
-        prm, h = self.params, self.dt
-        psi = relative_cayley(state.R)
-        fi, ti = internal_loads(state.p, state.R, prm, psi)
-        fe, te = self.external_loads(state, psi)
-        v = (state.v + 0.5 * h * (fi + fe) / prm.mass[..., None]) * self._free
-        pi = (state.pi + 0.5 * h * (ti + te)) * self._free
+        prm = self.params
+        kicked = self._half_kick(state, 0.5)
+        v, pi = kicked.v, kicked.pi
         T = 0.5 * (prm.mass[..., None] * v * v).sum((-1, -2)) + 0.5 * (pi * pi / prm.inertia).sum((-1, -2))
         return T + self.potential_energy(state)
 

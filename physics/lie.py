@@ -19,6 +19,7 @@ from torch import Tensor
 __all__ = [
     "hat", "vee", "skew_vee", "so3_exp", "so3_log", "cay", "cay_inv", "dcay_inv",
     "quat_to_matrix", "matrix_to_quat", "quat_normalize", "rot_x", "rot_y", "rot_z",
+    "mm3", "mtm3", "mv3", "mtv3",
 ]
 
 
@@ -179,3 +180,25 @@ def rot_y(theta, dtype=None, device=None) -> Tensor:
 
 def rot_z(theta, dtype=None, device=None) -> Tensor:
     return _axis_rot(theta, 2, dtype, device)
+
+
+# Small-matrix products written as broadcasts: they fuse under torch.compile, where a batched
+# matmul of 3x3 blocks would be an unfused library call.
+def mm3(A: Tensor, B: Tensor) -> Tensor:
+    """A @ B for (..., 3, 3)."""
+    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+
+
+def mtm3(A: Tensor, B: Tensor) -> Tensor:
+    """A^T @ B for (..., 3, 3)."""
+    return (A.unsqueeze(-1) * B.unsqueeze(-2)).sum(-3)
+
+
+def mv3(A: Tensor, v: Tensor) -> Tensor:
+    """A @ v for (..., 3, 3) and (..., 3)."""
+    return (A * v.unsqueeze(-2)).sum(-1)
+
+
+def mtv3(A: Tensor, v: Tensor) -> Tensor:
+    """A^T @ v for (..., 3, 3) and (..., 3)."""
+    return (A * v.unsqueeze(-1)).sum(-2)

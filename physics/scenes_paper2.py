@@ -1,0 +1,233 @@
+"""Paper II Simulations I-III (thesis lines 1669-1798): data-generating scenes for node surrogates.
+
+Frames. The thesis's node frames carry the rod axis as their first axis (Tables I.3-I.7:
+``E3 = [1, 0, 0]``) and its printed end orientations mix that convention with the plane of the
+figure. Here every node frame has body E3 along the centreline tangent and body E2 along the
+normal of the plane of the curve, and the printed orientations are reconciled as follows:
+
+* Ellipse (Simulation I): both ends sit at the origin on the ellipse's top vertex where the
+  tangent is +x, so both clamped frames equal the tangent frame there (E3 = +x, E2 = +z). The
+  printed ``R_y(18.07 deg)`` and ``R_y(341.92 deg)`` are the directions of the first and last
+  element chords: with 58 equal-arclength elements our chords make -18.14 and +18.14 deg with +x
+  (a rotation about the loop's normal; the thesis's "y"). For the horizontal ellipse the chords
+  make 0.73 deg, i.e. the printed "identity".
+* Semicircle (Simulation III): the relative rotation between the two clamped end frames is
+  ``R_z(180 deg)``, the printed ``R_z(181.81 deg)`` up to 1.81 deg (one element's turning angle is
+  1.8 deg, so the printed value is most likely the last node's frame counted one element on).
+
+No gravity: the thesis lists none, and a 55 cm rod of E = 10 MPa and radius 1 cm would sag by
+about 45 cm under its own weight. No damping (none is given). Material values not printed for
+Simulation I are taken from Simulation II (radius 1 cm, E 10 MPa, rho 1000, nu 0.3).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .loads import Loads
+from .rod import CircularSection, Material, Rod
+from .scene import Scene
+from .shapes import circular_arc, ellipse_loop, ellipse_perimeter
+
+__all__ = ["BUILDERS", "SquareTipForce", "NodePulse", "ellipse", "ellipse_horizontal", "square_tracking",
+           "semicircle", "semicircle_heldout"]
+
+_SOFT = Material(E=10e6, density=1000.0, nu=0.3)
+_VERY_SOFT = Material(E=10e3, density=1000.0, nu=0.3)
+_SECTION = CircularSection(0.02)  # radius 1 cm
+
+
+def _min_jerk(x: float) -> tuple[float, float]:
+    """Quintic s(x) = 10x^3 - 15x^4 + 6x^5 and its second derivative on [0, 1]."""
+    x = min(max(x, 0.0), 1.0)
+    return x**3 * (10 - 15 * x + 6 * x * x), x * (60 - 180 * x + 120 * x * x)
+
+
+class SquareTipForce:
+    """Open-loop feed-forward force on the tip node so that the tip tracks a square.
+
+    The desired lateral tip path ``x_d(t)`` runs through waypoints ``(0,0) -> (a,a) -> (-a,a) ->
+    (-a,-a) -> (a,-a) -> (a,a) -> (0,0)`` with minimum-jerk (quintic) segments, stopping at each
+    corner. The force is the single-mode model's inverse ``F = k x_d + m x_d''`` with the
+    Euler-Bernoulli tip stiffness ``k = 3 E I / L^3`` and the Rayleigh tip mass ``m = 33/140 rho A L``,
+    in the plane normal to the undeformed axis (x, y); no axial force.
+    """
+
+    def __init__(self, rod: Rod, half_side: float, durations: tuple[float, ...]):
+        E, I = rod.material.E, rod.section.second_moments[0]
+        self.k = 3 * E * I / rod.length**3
+        self.m = 33 / 140 * rod.line_mass * rod.length
+        a = float(half_side)
+        self.waypoints = [(0.0, 0.0), (a, a), (-a, a), (-a, -a), (a, -a), (a, a), (0.0, 0.0)]
+        if len(durations) != len(self.waypoints) - 1:
+            raise ValueError("SquareTipForce: need one duration per segment (6)")
+        self.durations = tuple(float(d) for d in durations)
+        self.n_nodes = rod.n_nodes
+
+    def desired(self, t: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Desired lateral tip position (x, y) and acceleration at time ``t``."""
+        t0 = 0.0
+        for (pa, pb), T in zip(zip(self.waypoints, self.waypoints[1:]), self.durations):
+            if t < t0 + T:
+                s, dds = _min_jerk((t - t0) / T)
+                return ((pa[0] + s * (pb[0] - pa[0]), pa[1] + s * (pb[1] - pa[1])),
+                        (dds / T**2 * (pb[0] - pa[0]), dds / T**2 * (pb[1] - pa[1])))
+            t0 += T
+        return self.waypoints[-1], (0.0, 0.0)
+
+    def __call__(self, t: float) -> torch.Tensor:
+        (x, y), (ax, ay) = self.desired(t)
+        f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
+        f[-1, 0] = self.k * x + self.m * ax
+        f[-1, 1] = self.k * y + self.m * ay
+        return f
+
+
+class NodePulse:
+    """World force ``amplitude * direction * shape(t)`` on one node for ``t`` in ``[t0, t1)``,
+    nothing (``None``: no force evaluation) outside. ``shape`` is ``'constant'`` or ``'cos_pi_t'``
+    (``cos(pi t)``, t in seconds)."""
+
+    def __init__(self, n_nodes: int, node: int, direction, amplitude: float, t0: float, t1: float,
+                 shape: str = "constant"):
+        if shape not in ("constant", "cos_pi_t"):
+            raise ValueError(f"NodePulse.shape must be 'constant' or 'cos_pi_t', got {shape!r}")
+        self.n_nodes, self.node, self.t0, self.t1, self.shape = n_nodes, node, float(t0), float(t1), shape
+        self.vector = float(amplitude) * torch.tensor(direction, dtype=torch.float64)
+
+    def __call__(self, t: float):
+        if not (self.t0 <= t < self.t1):
+            return None
+        f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
+        f[self.node] = self.vector * (math.cos(math.pi * t) if self.shape == "cos_pi_t" else 1.0)
+        return f
+
+
+# ------------------------------------------------------------------------------- Simulation I
+_ELLIPSE_N = 58
+
+
+def _ellipse_scene(name: str, width: float, height: float, description: str, thesis: dict) -> Scene:
+    L = ellipse_perimeter(width, height)
+    rod = Rod(L, _SECTION, _SOFT, n_elements=_ELLIPSE_N)
+
+    def build(rod_: Rod) -> dict:
+        p, R = ellipse_loop(rod_.N, width, height)
+        return {"p": p, "R": R}
+
+    return Scene(
+        name=name, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=5.0,
+        initial=build, nodes_of_interest=(29, 28, 30), node_labels=("node 30 (thesis)", "node 29", "node 31"),
+        thesis=dict(thesis, width=width, height=height, n_nodes=59, node_of_interest_1based=30, dt=1e-4,
+                    duration=5.0, samples=50001, dt_max_thesis_model=1e-3),
+        chosen={"radius": 0.01, "E": _SOFT.E, "density": _SOFT.density, "nu": _SOFT.nu, "length": L,
+                "end_frames": "tangent frame at the origin (E3 = +x, E2 = +z) for both ends"},
+    )
+
+
+def ellipse() -> Scene:
+    return _ellipse_scene(
+        "ellipse", 0.2, 0.6,
+        "Paper II Simulation I: a closed loop (58 elements, 59 nodes) bent into an ellipse 0.2 m wide (x) "
+        "and 0.6 m high (y) with both end nodes clamped at the origin (its top vertex), released from "
+        "rest; the stress-free shape is straight, so the loop oscillates under its own elastic energy. "
+        "Chosen (not printed): radius 1 cm, E 10 MPa, rho 1000, nu 0.3 (as Simulation II); length = "
+        "ellipse perimeter 1.3365 m; nodes at equal arclength; both clamped frames are the tangent frame "
+        "at the origin, the printed R_y(18.07 deg)/R_y(341.92 deg) being the first/last chord directions "
+        "(ours: -/+18.14 deg about the normal). Node of interest: node 30 of 59 (0-based 29) at (0, -0.6). "
+        "dt 1e-4 s (dt/dt_max 0.63), 5 s (50001 samples as in the thesis). No gravity, no damping.",
+        {"end_orientations_deg": {"first": ("R_y", 18.07), "last": ("R_y", 341.92)},
+         "node_of_interest_xy": (-0.01, -0.59),
+         "rnn_errors": {"x": (1.57e-3, 0.27e-3), "y": (2.27e-3, 0.46e-3), "z": (0.23e-3, 0.06e-3)}})
+
+
+def ellipse_horizontal() -> Scene:
+    return _ellipse_scene(
+        "ellipse_horizontal", 0.6, 0.2,
+        "Paper II Simulation I, held-out case: the same rod as 'ellipse' bent into an ellipse 0.6 m wide "
+        "and 0.2 m high, both ends clamped at the origin (top vertex) with the tangent frame there (the "
+        "printed 'identity'; the first chord is 0.73 deg off +x), released from rest. Node of interest: "
+        "node 30 (0-based 29) at (0, -0.2). dt 1e-4 s, 5 s. No gravity, no damping.",
+        {"end_orientations_deg": {"first": ("identity", 0.0), "last": ("identity", 0.0)},
+         "node_of_interest_xy": (-0.01, -0.19),
+         "rnn_errors": {"x": (26.33e-3, 3.37e-3), "y": (21.71e-3, 3.70e-3), "z": (4.92e-3, 4.22e-3)}})
+
+
+# ------------------------------------------------------------------------------- Simulation II
+def square_tracking() -> Scene:
+    rod = Rod(0.55, _SECTION, _SOFT, n_elements=8)
+    half, durations = 0.05, (2.0, 3.0, 3.0, 3.0, 3.0, 2.0)
+    force = SquareTipForce(rod, half, durations)
+    return Scene(
+        name="square_tracking",
+        description=(
+            "Paper II Simulation II: a cantilever (radius 1 cm, 55 cm, 8 elements, E 10 MPa, rho 1000, "
+            "nu 0.3) clamped at the origin along +z whose tip is driven by lateral forces so that it "
+            "tracks a square. Chosen: a 10 cm square (corners at x, y = +-5 cm) entered from the centre in "
+            "2 s, each side in 3 s with minimum-jerk stops at the corners, back to the centre in the last "
+            "2 s (16 s in all); open-loop feed-forward F = k x_d + m x_d'' with k = 3EI/L^3 = 1.42 N/m and "
+            "m = 33/140 of the rod mass (peak force about 0.1 N). dt 1e-4 s (dt/dt_max 0.62). No gravity, "
+            "no damping."),
+        rod=rod, bc="clamped-free", dt=1e-4, duration=16.0, loads=Loads(force=force),
+        nodes_of_interest=(8, 7), node_labels=("tip", "node 8"),
+        thesis={"radius": 0.01, "n_elements": 8, "length": 0.55, "density": 1000.0, "E": 10e6, "nu": 0.3,
+                "dt": 1e-4, "duration": 16.0, "samples": 160001, "dt_max_thesis_model": 1e-4,
+                "rnn_errors": {"x": (3.58e-3, 1.70e-3), "y": (1.80e-3, 0.69e-3), "z": (2.73e-3, 1.41e-3)}},
+        chosen={"square_half_side": half, "segment_durations": durations, "tip_stiffness": force.k,
+                "tip_mass": force.m, "plane": "xy (normal to the undeformed axis)"},
+    )
+
+
+# ------------------------------------------------------------------------------- Simulation III
+_SEMI_N, _SEMI_MID = 100, 50
+_SEMI_FORCE = 0.1  # N (chosen; the held-out profile's amplitude)
+
+
+def _semicircle_scene(name: str, force: NodePulse, description: str, thesis: dict, chosen: dict) -> Scene:
+    rod = Rod(0.6, _SECTION, _VERY_SOFT, n_elements=_SEMI_N)
+
+    def build(rod_: Rod) -> dict:
+        p, R = circular_arc(rod_.arclength.tolist(), math.pi)
+        return {"p": p, "R": R}
+
+    base = {"radius": 0.01, "n_elements": _SEMI_N, "length": 0.6, "density": 1000.0, "E": 10e3, "nu": 0.3,
+            "dt": 1e-4, "duration": 2.0, "samples": 20001, "end_orientations_deg": {
+                "first": ("identity", 0.0), "last": ("R_z", 181.81)}, "force_node_1based": 51}
+    return Scene(
+        name=name, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=2.0,
+        loads=Loads(force=force), initial=build, nodes_of_interest=(_SEMI_MID, 14),
+        node_labels=("node 51 (force)", "node 15"), thesis=dict(base, **thesis),
+        chosen=dict({"arc": "semicircle x = R(1 - cos phi), y = R sin phi, R = L/pi = 0.191 m, ends "
+                             "(0,0) and (2R,0), apex (R,R)"}, **chosen),
+    )
+
+
+def semicircle() -> Scene:
+    force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, -1.0, 0.0), _SEMI_FORCE, 0.0, 0.5)
+    return _semicircle_scene(
+        "semicircle", force,
+        "Paper II Simulation III: a very soft rod (radius 1 cm, 60 cm, 100 elements, E 10 kPa, rho 1000, "
+        "nu 0.3) bent into a semicircle in the xy-plane (ends clamped at (0,0) and (0.38 m, 0), apex up) "
+        "and pushed at its middle node (node 51 of 101) towards the chord (-y) for the first 0.5 s, then "
+        "left free. Chosen: force 100 mN (magnitude not printed; the held-out profile's amplitude); the "
+        "end frames are tangent frames, related by R_z(180 deg) (printed 181.81 deg). The clamped "
+        "semicircle is an equilibrium without the force. dt 1e-4 s, 2 s. No gravity, no damping.",
+        {"force_direction": (0.0, -1.0, 0.0), "force_interval": (0.0, 0.5),
+         "rnn_errors": {"x": (1.36e-3, 0.78e-3), "y": (0.23e-3, 0.13e-3), "z": (2.22e-3, 0.81e-3)}},
+        {"force_magnitude": _SEMI_FORCE})
+
+
+def semicircle_heldout() -> Scene:
+    force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, 0.0, -1.0), _SEMI_FORCE, 1.0, 2.0 + 1e-9, shape="cos_pi_t")
+    return _semicircle_scene(
+        "semicircle_heldout", force,
+        "Paper II Simulation III, held-out case: the clamped semicircle of 'semicircle' at rest until "
+        "t = 1 s, then the out-of-plane force [0, 0, -100 cos(pi t)] mN on node 51 for t in [1, 2] s. "
+        "dt 1e-4 s, 2 s. No gravity, no damping.",
+        {"force": "[0, 0, -100 cos(pi t)] mN", "force_interval": (1.0, 2.0),
+         "rnn_errors": {"x": (3.73e-3, 1.25e-3), "y": (2e-3, 0.2e-3), "z": (8.1e-3, 1.2e-3)}},
+        {})
+
+
+BUILDERS = (ellipse, ellipse_horizontal, square_tracking, semicircle, semicircle_heldout)

@@ -1,0 +1,325 @@
+"""Validation of the LGVI against analytic solutions and conservation laws (float64)."""
+import math
+import warnings
+
+import pytest
+import torch
+
+from physics import LGVI, Loads, Magnet, SolverError, UniformField
+from physics.lie import rot_y, so3_exp
+from problems import (EI, aluminium_rod, cantilever_tip_force, cantilever_tip_moment, cantilever_uniform_load_tip,
+                      clamped_clamped_mid, eb_first_frequency, pdms_rod, steel_like_rod)
+
+D = torch.float64
+
+
+def stiff_rod(n_elements=10, **kw):
+    """L/r = 40, E = 2 GPa: small static deflections; rotational inertia scaled (statics unchanged)."""
+    return steel_like_rod(n_elements, E=2e9, rotational_inertia_scale=16.0, **kw)
+
+
+def critical_damping(rod):
+    """Translational damping per length that critically damps the first bending mode."""
+    return 2 * rod.line_mass * eb_first_frequency(rod)
+
+
+def settle(sim, n_periods=2.5, **kw):
+    T = 2 * math.pi / eb_first_frequency(sim.rod)
+    state, _ = sim.simulate(sim.initial_state(), n_steps=int(n_periods * T / sim.dt), record_every=10**9, **kw)
+    return state
+
+
+def safe_dt(rod, frac=0.8):
+    return frac * rod.stable_time_step().dt_max
+
+
+def test_cantilever_first_frequency_vs_euler_bernoulli():
+    rod = steel_like_rod(20)
+    w_eb = eb_first_frequency(rod)
+    sim = LGVI(rod, dt=safe_dt(rod, 0.5))
+    # initial velocity in the first Euler-Bernoulli mode shape
+    s = rod.arclength / rod.length
+    b = 1.8751040687
+    sig = (math.cosh(b) + math.cos(b)) / (math.sinh(b) + math.sin(b))
+    bs = b * s
+    phi = torch.cosh(bs) - torch.cos(bs) - sig * (torch.sinh(bs) - torch.sin(bs))
+    v = torch.zeros(rod.n_nodes, 3, dtype=D)
+    v[:, 0] = 1e-3 * phi
+    state = sim.initial_state(v=v)
+    T = 2 * math.pi / w_eb
+    _, traj = sim.simulate(state, n_steps=int(1.3 * T / sim.dt))
+    x = traj.p[:, -1, 0]
+    t = traj.t
+    sign = torch.sign(x[1:])
+    idx = ((sign[1:] * sign[:-1]) < 0).nonzero().flatten() + 1  # zero crossings after the start
+    assert len(idx) >= 2
+    tz = [float(t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])) for i in idx[:2]]
+    w_sim = 2 * math.pi / (2 * (tz[1] - tz[0]))
+    assert abs(w_sim - w_eb) / w_eb < 0.02
+    # and the linearised discrete model agrees with the simulation
+    assert abs(w_sim - float(rod.natural_frequencies(n_modes=1)[0])) / w_eb < 0.005
+
+
+def test_frequency_converges_with_elements():
+    w_eb = eb_first_frequency(aluminium_rod(4))
+    errs = [abs(float(aluminium_rod(N).natural_frequencies(n_modes=1)[0]) - w_eb) / w_eb for N in (5, 10, 20)]
+    assert errs[0] > errs[1] > errs[2]
+    assert errs[1] < 0.02 and errs[2] < 0.02
+
+
+def test_static_gravity_deflection():
+    rod = stiff_rod(damping=0.0)
+    rod = type(rod)(**{**rod.__dict__, "damping": critical_damping(rod)})
+    g = 9.81
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(gravity=(-g, 0.0, 0.0)))
+    state = settle(sim, 3.0)
+    ref = cantilever_uniform_load_tip(rod, rod.line_mass * g)
+    tip = -float(state.p[-1, 0])
+    assert ref / rod.length < 2e-3  # small deflection
+    assert abs(tip - ref) / ref < 0.02
+
+
+def test_static_tip_force_and_tip_moment_batched():
+    rod = stiff_rod()
+    rod = type(rod)(**{**rod.__dict__, "damping": critical_damping(rod)})
+    n = rod.n_nodes
+    P, M = 0.05, 0.005
+    force = torch.zeros(2, n, 3, dtype=D)
+    torque = torch.zeros(2, n, 3, dtype=D)
+    force[0, -1, 0] = P      # tip force along +x
+    torque[1, -1, 1] = M     # tip moment about +y bends the tip toward +x
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(force=force, torque=torque))
+    p0 = sim.initial_state().p.expand(2, n, 3)
+    T = 2 * math.pi / eb_first_frequency(rod)
+    state, _ = sim.simulate(sim.initial_state(p=p0), n_steps=int(3.0 * T / sim.dt), record_every=10**9)
+    assert abs(float(state.p[0, -1, 0]) - cantilever_tip_force(rod, P)) / cantilever_tip_force(rod, P) < 0.005
+    assert abs(float(state.p[1, -1, 0]) - cantilever_tip_moment(rod, M)) / cantilever_tip_moment(rod, M) < 0.005
+    # tip rotation under the tip moment: M L / (E I) about +y
+    th = float(so3_log_y(state.R[1, -1]))
+    assert abs(th - M * rod.length / EI(rod)) / (M * rod.length / EI(rod)) < 0.005
+
+
+def so3_log_y(R):
+    return torch.atan2(R[0, 2], R[2, 2])
+
+
+def test_clamped_clamped_midspan_deflection():
+    # at N = 20 the discrete solution is within 1 % of Euler-Bernoulli + Timoshenko shear
+    # (q L^2 / (8 k G A) adds 1.95 % here) and converges to it as N grows
+    rod = stiff_rod(20)
+    rod = type(rod)(**{**rod.__dict__, "damping": 3 * critical_damping(rod)})
+    g = 9.81
+    sim = LGVI(rod, dt=safe_dt(rod), bc="clamped-clamped", loads=Loads(gravity=(-g, 0.0, 0.0)))
+    state = settle(sim, 1.2)
+    ref = clamped_clamped_mid(rod, rod.line_mass * g)
+    mid = -float(state.p[rod.N // 2, 0])
+    assert abs(mid - ref) / ref < 0.02
+    timoshenko = ref + rod.line_mass * g * rod.length**2 / (8 * rod.C1[0])
+    assert abs(mid - timoshenko) / timoshenko < 0.01
+    assert torch.equal(state.p[-1], sim.initial_state().p[-1])
+
+
+def test_batched_equals_one_by_one():
+    rod = pdms_rod(6)
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(gravity=(0.0, -9.81, 0.0)))
+    g = torch.Generator().manual_seed(1)
+    v = 0.05 * torch.randn(3, rod.n_nodes, 3, generator=g, dtype=D)
+    base = sim.initial_state()
+    batch, _ = sim.simulate(sim.initial_state(p=base.p.expand(3, -1, -1), v=v), n_steps=200, record_every=10**9)
+    for b in range(3):
+        one, _ = sim.simulate(sim.initial_state(v=v[b]), n_steps=200, record_every=10**9)
+        assert torch.allclose(batch.p[b], one.p, rtol=0, atol=1e-14)
+        assert torch.allclose(batch.R[b], one.R, rtol=0, atol=1e-14)
+
+
+def free_rod_state(sim, seed=0):
+    rod = sim.rod
+    g = torch.Generator().manual_seed(seed)
+    p = sim.initial_state().p + 1e-3 * rod.length * torch.randn(rod.n_nodes, 3, generator=g, dtype=D)
+    R = so3_exp(0.02 * torch.randn(rod.n_nodes, 3, generator=g, dtype=D))
+    v = 0.05 * torch.randn(rod.n_nodes, 3, generator=g, dtype=D)
+    w = 2.0 * torch.randn(rod.n_nodes, 3, generator=g, dtype=D)
+    return sim.initial_state(p=p, R=R, v=v, omega=w)
+
+
+def test_free_free_momentum_and_orthogonality():
+    rod = pdms_rod(8)
+    sim = LGVI(rod, dt=safe_dt(rod), bc="free-free")
+    s0 = free_rod_state(sim)
+    P0, L0 = sim.momentum(s0)
+    s1, traj = sim.simulate(s0, n_steps=3000, record_every=10**9)
+    P1, L1 = sim.momentum(s1)
+    assert float((P1 - P0).norm() / P0.norm()) < 1e-9
+    assert float((L1 - L0).norm() / L0.norm()) < 1e-9
+    assert float(sim.orthogonality_error(s1)) < 1e-12
+    assert traj.newton_iters.max() <= 4 and traj.newton_residual < 1e-12
+
+
+@pytest.mark.slow
+def test_energy_bounded_over_1e5_steps():
+    rod = pdms_rod(4)
+    sim = LGVI(rod, dt=safe_dt(rod, 0.25), bc="clamped-free", newton_iters=3)
+    s = rod.arclength / rod.length
+    v = torch.zeros(rod.n_nodes, 3, dtype=D)
+    v[:, 1] = 0.05 * s**2
+    s0 = sim.initial_state(v=v)
+    E0 = float(sim.energy(s0))
+    s1, traj = sim.simulate(s0, n_steps=100_000, record_every=1000, record_energy=True)
+    rel = (traj.energy - E0).abs() / E0
+    assert float(rel.max()) < 1e-4
+    # no secular drift: the last tenth is no worse than the first tenth (+ a small margin)
+    k = len(rel) // 10
+    assert float(rel[-k:].max()) < 2 * float(rel[:k].max()) + 1e-6
+    assert float(sim.orthogonality_error(s1)) < 1e-12
+
+
+def test_time_convergence_order_two():
+    # released under gravity from straight; dt0 resolves every mode (h omega_max = 0.4)
+    rod = pdms_rod(6)
+    dt0 = safe_dt(rod, 0.2)
+    T = 400 * dt0
+
+    def tip(dt):
+        sim = LGVI(rod, dt=dt, loads=Loads(gravity=(0.0, -9.81, 0.0)))
+        st, _ = sim.simulate(sim.initial_state(), n_steps=round(T / dt), record_every=10**9)
+        return st.p[-1]
+
+    ref = tip(dt0 / 16)
+    errs = [float((tip(dt0 / k) - ref).norm()) for k in (1, 2, 4)]
+    orders = [math.log2(errs[i] / errs[i + 1]) for i in range(2)]
+    assert all(1.8 < o < 2.3 for o in orders), orders
+
+
+@pytest.mark.parametrize("make", [aluminium_rod, pdms_rod], ids=["aluminium", "pdms"])
+def test_stability_limit(make):
+    rod = make(10)
+    est = rod.stable_time_step()
+    sim = LGVI(rod, dt=0.8 * est.dt_max, bc="free-free")
+    s1, _ = sim.simulate(free_rod_state(sim), n_steps=3000, record_every=10**9)
+    assert float(s1.p.abs().max()) < 2 * rod.length
+    with pytest.raises(ValueError, match="stability limit dt_max"):
+        LGVI(rod, dt=2 * est.dt_max)
+    with pytest.warns(RuntimeWarning, match="stability limit"):
+        fast = LGVI(rod, dt=2 * est.dt_max, bc="free-free", stability="warn", check_every=50)
+    with pytest.raises(SolverError, match=r"step=\d+, time=.*node=\d+"):
+        fast.simulate(free_rod_state(fast), n_steps=5000)
+
+
+def test_nan_load_raises_solver_error_with_location():
+    rod = pdms_rod(6)
+
+    def force(t):
+        f = torch.zeros(rod.n_nodes, 3, dtype=D)
+        if float(t) > 4.5 * dt:
+            f[3, 1] = float("nan")
+        return f
+
+    dt = safe_dt(rod)
+    sim = LGVI(rod, dt=dt, loads=Loads(force=force), check_every=7)
+    with pytest.raises(SolverError) as err:
+        sim.simulate(sim.initial_state(), n_steps=20)
+    assert err.value.step == 6 and err.value.node == 3
+    assert err.value.time == pytest.approx(6 * dt)
+
+
+def test_newton_failure_is_reported():
+    rod = pdms_rod(4)
+    sim = LGVI(rod, dt=safe_dt(rod), bc="free-free", newton_max_iter=1)
+    w = torch.zeros(rod.n_nodes, 3, dtype=D)
+    w[2] = torch.tensor([0.0, 3e4, 1e4])
+    with pytest.raises(SolverError, match="Newton.*node=2"):
+        sim.simulate(sim.initial_state(omega=w), n_steps=3)
+
+
+def test_prescribed_base_translation_moves_rod_rigidly():
+    rod = pdms_rod(5)
+    vel = torch.tensor([0.01, -0.02, 0.03], dtype=D)
+    sim = LGVI(rod, dt=safe_dt(rod), bc="prescribed-base",
+               base_motion=lambda t: (vel * t, torch.eye(3, dtype=D)))
+    s0 = sim.initial_state(v=vel)
+    s1, _ = sim.simulate(s0, n_steps=300, record_every=10**9)
+    assert torch.allclose(s1.p, s0.p + vel * s1.t, atol=1e-12)
+
+
+def test_prescribed_base_rotation_drags_the_rod():
+    rod = pdms_rod(5)
+    rate = 2.0  # rad/s about +y
+    sim = LGVI(rod, dt=safe_dt(rod), bc="prescribed-base",
+               base_motion=lambda t: (torch.zeros(3, dtype=D), rot_y(rate * t, dtype=D)))
+    s1, _ = sim.simulate(sim.initial_state(), n_steps=int(0.2 / sim.dt), record_every=10**9)
+    assert torch.allclose(s1.R[0], rot_y(rate * s1.t, dtype=D), atol=1e-12)
+    assert float(s1.p[-1, 0]) > 0.0  # the free end swings toward +x
+
+
+def test_tip_magnet_in_uniform_field_small_angle_equilibrium():
+    m = 0.0109  # A m^2, N45 2 mm x 4 mm magnet
+    B = 2e-4    # T: small angle
+    base = pdms_rod(10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, m)),))
+    rod = type(base)(**{**base.__dict__, "damping": 2 * critical_damping(base)})
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(field=UniformField(torch.tensor([B, 0.0, 0.0], dtype=D))))
+    state = settle(sim, 3.0)
+    theta = float(so3_log_y(state.R[-1]))
+    ref = m * B * rod.length / EI(rod)
+    assert 0 < ref < 0.1
+    assert abs(theta - ref) / ref < 0.03
+
+
+def test_tip_magnet_follows_rotating_field():
+    m = 0.0109
+    base = pdms_rod(10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, m)),))
+    rod = type(base)(**{**base.__dict__, "damping": critical_damping(base)})
+    w = 2 * math.pi * 0.5  # slow rotation in the x-z plane
+    Bm = 0.02
+
+    def field(t):
+        return torch.stack((Bm * torch.sin(w * t), torch.zeros_like(t), Bm * torch.cos(w * t)))
+
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(field=UniformField(field)))
+    state, traj = sim.simulate(sim.initial_state(), duration=0.5, record_every=50, record_R=True)
+    # tip direction (third director) lags but turns with the field, toward +x
+    d3 = traj.R[:, -1, :, 2]
+    ang = torch.atan2(d3[:, 0], d3[:, 2])
+    assert float(ang[-1]) > 0.5 * w * float(traj.t[-1])
+    assert bool((ang[1:] - ang[:-1] > -1e-3).all())
+
+
+def test_float32_tracks_float64():
+    rod = pdms_rod(8)
+    out = {}
+    for dt_ in (torch.float32, torch.float64):
+        sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(gravity=(0.0, -9.81, 0.0)), dtype=dt_)
+        st, _ = sim.simulate(sim.initial_state(), n_steps=1000, record_every=10**9)
+        out[dt_] = st.p.double()
+    assert (out[torch.float32] - out[torch.float64]).abs().max() < 1e-5 * rod.length
+
+
+def test_input_validation():
+    rod = pdms_rod(4)
+    with pytest.raises(ValueError, match="dt"):
+        LGVI(rod, dt=0.0)
+    with pytest.raises(ValueError, match="clamped-free"):
+        LGVI(rod, dt=1e-5, bc="hinged")
+    with pytest.raises(ValueError, match="base_motion"):
+        LGVI(rod, dt=1e-5, bc="prescribed-base")
+    sim = LGVI(rod, dt=1e-5)
+    with pytest.raises(ValueError, match=r"p must be \(\.\.\., 5, 3\)"):
+        sim.initial_state(p=torch.zeros(4, 3, dtype=D))
+    with pytest.raises(ValueError, match="proper rotations"):
+        sim.initial_state(R=2 * torch.eye(3, dtype=D).expand(5, 3, 3))
+    with pytest.raises(ValueError, match="finite"):
+        sim.initial_state(p=torch.full((5, 3), float("nan"), dtype=D))
+    with pytest.raises(ValueError, match="gravity"):
+        LGVI(rod, dt=1e-5, loads=Loads(gravity=(0.0, 1.0)))
+
+
+@pytest.mark.slow
+def test_compiled_rollout_matches_eager():
+    rod = pdms_rod(6)
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(gravity=(0.0, -9.81, 0.0)))
+    s0 = sim.initial_state()
+    eager, _ = sim.simulate(s0, n_steps=40, record_every=10**9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        comp, rec = sim.compiled_rollout(s0, n_steps=40, steps_per_call=2, record_every=5)
+    assert torch.allclose(comp.p, eager.p, atol=1e-13) and torch.allclose(comp.R, eager.R, atol=1e-13)
+    assert rec.shape == (5, rod.n_nodes, 3)
