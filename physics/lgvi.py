@@ -217,7 +217,8 @@ class LGVI:
         pi = torch.zeros_like(p) if omega is None else prm.inertia * torch.as_tensor(omega, **kw).expand_as(p)
         # the state holds v^{-1/2} and the momentum before the first torque kick: step back half a
         # kick from the given velocities (velocity-Verlet start, keeps the scheme second order)
-        state = LGVIState(float(t), p, v * self._free, R, pi * self._free, 0)
+        state = LGVIState(float(t), p.contiguous(), (v * self._free).contiguous(), R.contiguous(),
+                          (pi * self._free).contiguous(), 0)
         return self._half_kick(state, -0.5)
 
     def _half_kick(self, state: LGVIState, frac: float) -> LGVIState:

@@ -182,23 +182,31 @@ def rot_z(theta, dtype=None, device=None) -> Tensor:
     return _axis_rot(theta, 2, dtype, device)
 
 
-# Small-matrix products written as broadcasts: they fuse under torch.compile, where a batched
-# matmul of 3x3 blocks would be an unfused library call.
+# Small-matrix products: eager uses batched matmul (fast for large batches); under torch.compile
+# they are written as broadcasts, which fuse, where a matmul of 3x3 blocks is an unfused call.
 def mm3(A: Tensor, B: Tensor) -> Tensor:
     """A @ B for (..., 3, 3)."""
-    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+    if torch.compiler.is_compiling():
+        return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+    return A @ B
 
 
 def mtm3(A: Tensor, B: Tensor) -> Tensor:
     """A^T @ B for (..., 3, 3)."""
-    return (A.unsqueeze(-1) * B.unsqueeze(-2)).sum(-3)
+    if torch.compiler.is_compiling():
+        return (A.unsqueeze(-1) * B.unsqueeze(-2)).sum(-3)
+    return A.transpose(-1, -2) @ B
 
 
 def mv3(A: Tensor, v: Tensor) -> Tensor:
     """A @ v for (..., 3, 3) and (..., 3)."""
-    return (A * v.unsqueeze(-2)).sum(-1)
+    if torch.compiler.is_compiling():
+        return (A * v.unsqueeze(-2)).sum(-1)
+    return (A @ v.unsqueeze(-1)).squeeze(-1)
 
 
 def mtv3(A: Tensor, v: Tensor) -> Tensor:
     """A^T @ v for (..., 3, 3) and (..., 3)."""
-    return (A * v.unsqueeze(-1)).sum(-2)
+    if torch.compiler.is_compiling():
+        return (A * v.unsqueeze(-1)).sum(-2)
+    return (v.unsqueeze(-2) @ A).squeeze(-2)

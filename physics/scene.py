@@ -77,6 +77,7 @@ class Scene:
 
     ``initial(rod)`` returns a mapping with ``p`` (n, 3), optionally ``R`` (n, 3, 3), ``v`` (n, 3)
     world velocities and ``omega`` (n, 3) body angular velocities, float64.
+    ``title`` is a one-line summary (default: the description's first sentence).
     ``nodes_of_interest`` are 0-based node indices (``node_labels`` name them); the first is the
     node a summary reports (the tip for cantilevers). ``thesis`` holds the printed values in SI,
     ``chosen`` the values chosen here where the thesis is silent (and derived limits).
@@ -88,6 +89,7 @@ class Scene:
     bc: str
     dt: float
     duration: float
+    title: str = ""
     gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     loads: Loads = field(default_factory=Loads)
     initial: InitialBuilder = _straight
@@ -126,8 +128,8 @@ class Scene:
     # ------------------------------------------------------------------ summary
     @property
     def summary(self) -> str:
-        """First sentence of the description (one line)."""
-        return self.description.split(". ")[0].strip().rstrip(".") + "."
+        """One line: the title, or the first sentence of the description."""
+        return self.title or self.description.split(". ")[0].strip().rstrip(".") + "."
 
     @property
     def n_steps(self) -> int:

@@ -88,8 +88,8 @@ class RotatingField:
         self.amplitude, self.frequency = float(amplitude), float(frequency)
         self.e_a, self.e_b = torch.tensor(e_a, dtype=torch.float64), torch.tensor(e_b, dtype=torch.float64)
 
-    def __call__(self, t: float) -> torch.Tensor:
-        w = 2 * math.pi * self.frequency * t
+    def __call__(self, t) -> torch.Tensor:
+        w = 2 * math.pi * self.frequency * float(t)  # t: float or 0-d tensor
         return self.static + self.amplitude * (math.cos(w) * self.e_a + math.sin(w) * self.e_b)
 
 
@@ -101,8 +101,8 @@ class SweptField:
         self.b0, self.b1, self.period, self.phi_max = float(b0), float(b1), float(period), float(phi_max)
         self.e_a, self.e_b = torch.tensor(e_a, dtype=torch.float64), torch.tensor(e_b, dtype=torch.float64)
 
-    def __call__(self, t: float) -> torch.Tensor:
-        x = min(max(t / self.period, 0.0), 1.0)
+    def __call__(self, t) -> torch.Tensor:
+        x = min(max(float(t) / self.period, 0.0), 1.0)
         b = self.b0 + (self.b1 - self.b0) * x
         phi = self.phi_max * math.sin(math.pi * x) ** 2
         return b * (math.cos(phi) * self.e_a + math.sin(phi) * self.e_b)
@@ -115,6 +115,7 @@ def al_inplane() -> Scene:
     th = math.radians(3.69)
     return Scene(
         name="al_inplane",
+        title="Paper I exp. 1: hanging Al rod (d 2 mm, L 200 mm) released from a 3.69 deg in-plane bend",
         description=(
             "Paper I experiment 1: hanging aluminium rod (d 2 mm, L 200 mm, 15 elements) released from an "
             "in-plane tip deflection of 3.69 deg in the E1E3-plane. Gravity acts along the rod (+E3 points "
@@ -141,6 +142,7 @@ def al_3d() -> Scene:
     th = cantilever_rotation_for_offset(0.2, offset)
     return Scene(
         name="al_3d",
+        title="Paper I exp. 2: hanging Al rod (d 1 mm, L 200 mm) released from an out-of-plane bend",
         description=(
             "Paper I experiment 2: hanging aluminium rod (d 1 mm, L 200 mm, 15 elements) released from an "
             "out-of-plane tip deflection. The printed tip offsets are used: +10 mm along E1 (theta_E1E3 = "
@@ -165,6 +167,7 @@ def pdms_inplane() -> Scene:
     rod = Rod(0.0605, CircularSection(5e-3), _PDMS, n_elements=10)
     return Scene(
         name="pdms_inplane",
+        title="Paper I exp. 3: horizontal PDMS rod (D 5 mm) released straight under gravity",
         description=(
             "Paper I experiment 3: horizontal PDMS rod (D 5 mm, L 60.5 mm, E 365.12 kPa, 10 elements) "
             "released straight and at rest under gravity along -E2; it sags and oscillates in the "
@@ -185,7 +188,7 @@ def _pdms_tip_magnet_rod(damping: float = 0.0) -> Rod:
     return Rod(0.06055, CircularSection(4e-3), _PDMS, n_elements=10, magnets=(magnet,), damping=damping)
 
 
-_TABLE_I6 = dict(
+_TABLE_I6 = table_to_si(
     table="I.6", n_elements=10, M=13.83e-3, J_d=(0.0, 13.83, 13.83), C1=(4.58e9, 1.53e9, 1.53e9),
     C2=(3.06e9, 4.59e9, 4.59e9), F_c={"nodes 1..N": 1.357e5, "node N+1": 1.36e5}, dt=9e-5, duration=2.0,
     filter_R=1e5, filter_W=0.1, magnet_mass=9.6e-5, magnet_size=(2e-3, 4e-3), Br=(1.32, 1.37),
@@ -196,6 +199,7 @@ def pdms_tip_magnet() -> Scene:
     rod = _pdms_tip_magnet_rod()
     return Scene(
         name="pdms_tip_magnet",
+        title="Paper I exp. 4: PDMS rod with a tip magnet released from a -41.74 deg bend",
         description=(
             "Paper I experiment 4: horizontal PDMS rod (D 4 mm, L 60.55 mm, 10 elements) with an N45 tip "
             "magnet (D 2 mm x 4 mm, 0.096 g, m = Br V / mu0 = 0.0135 A m^2 along the rod, Br 1.345 T), "
@@ -214,23 +218,29 @@ def pdms_circular() -> Scene:
     damping = 0.022  # 5 % of critical in the first mode (omega_1 = 14.4 rad/s)
     rod = _pdms_tip_magnet_rod(damping)
     field = RotatingField(static=(0.0, 7.75e-3, 0.0), amplitude=14.5e-3, frequency=0.5,
-                          e_a=(0.0, 0.0, 1.0), e_b=(0.0, 1.0, 0.0))
+                          e_a=(0.0, 1.0, 0.0), e_b=(1.0, 0.0, 0.0))
     return Scene(
         name="pdms_circular",
+        title="Paper I exp. 5: tip-magnet PDMS rod driven around a circle by a rotating field",
         description=(
-            "Paper I experiment 5: the tip-magnet PDMS rod driven around a loop in the E2E3-plane by a "
-            "uniform field B(t) = 7.75 mT E2 (gravity compensation, opposing gravity along -E2) + 14.5 mT "
-            "(cos(w t) E3 + sin(w t) E2). Chosen: w = 2 pi x 0.5 Hz (one turn in the 2 s of Table I.6, "
-            "well below the first bending frequency 2.3 Hz); the rotating part starts aligned with the "
-            "moment. The rod starts at rest in static equilibrium under gravity and B(0) (B_g levels the "
-            "tip: by linear theory its torque rotates the tip by 1.37 rad against gravity's 1.47 rad); "
-            "viscous damping 0.022 N s/m^2 (5 % of critical in mode 1). dt = 9e-5 s as printed."),
+            "Paper I experiment 5: the tip-magnet PDMS rod driven so that its tip circles around the rod "
+            "axis, by a uniform field B(t) = 7.75 mT E2 (gravity compensation, opposing gravity along -E2) "
+            "+ 14.5 mT (cos(w t) E2 + sin(w t) E1), w = 2 pi x 0.5 Hz. Reading: the rotating field turns "
+            "in the plane normal to the rod, i.e. the thesis's 'E2E3-plane' in the frame of its tables, "
+            "where the rod axis is [1, 0, 0]; this is what the setup can make (coil pairs along its E1 "
+            "and E2 only), what makes a circle (a field rotating in the plane that contains the rod "
+            "passes through anti-parallel to the moment and snaps the rod over instead) and why the "
+            "experiment needed 3D stereo reconstruction. B_g levels the tip: by linear theory its torque "
+            "rotates the tip by 1.37 rad against gravity's 1.47 rad. Chosen: 0.5 Hz (one turn in the 2 s "
+            "of Table I.6, below the first bending frequency 2.3 Hz); the rod starts at rest in static "
+            "equilibrium under gravity and B(0) = 22.25 mT E2; viscous damping 0.022 N s/m^2 (5 % of "
+            "critical in mode 1). dt = 9e-5 s as printed."),
         rod=rod, bc="clamped-free", dt=9e-5, duration=2.0, gravity=(0.0, -G_EARTH, 0.0),
         loads=Loads(field=UniformField(field)), initial=_equilibrium((0.0, -G_EARTH, 0.0), field(0.0)),
         nodes_of_interest=(10,), node_labels=("tip",),
         thesis=dict(_TABLE_I6, B_gravity_compensation=7.75e-3, B_rotating=14.5e-3, B_max_setup=45e-3,
-                    errors={"tip, Euclidean": _err(1.20, 0.59, 1.43)}),
-        chosen={"rotation_frequency_hz": 0.5, "rotation_plane": "E2E3, from +E3 towards +E2",
+                    rotation_plane_printed="E2E3", errors={"tip, Euclidean": _err(1.20, 0.59, 1.43)}),
+        chosen={"rotation_frequency_hz": 0.5, "rotation_plane": "E1E2 (normal to the rod), from +E2 towards +E1",
                 "damping": damping, "damping_ratio_mode1": 0.05, "Br": BR_N45,
                 "initial_state": "static equilibrium under gravity and B(0)"},
     )
@@ -245,6 +255,7 @@ def pdms_square_two_magnets() -> Scene:
     field = SweptField(20e-3, 19.85e-3, 7.5, math.pi / 2, e_a=(0.0, 0.0, 1.0), e_b=(0.0, 1.0, 0.0))
     return Scene(
         name="pdms_square_two_magnets",
+        title="Paper I exp. 6: square PDMS rod with two magnets bent by a swept field",
         description=(
             "Paper I experiment 6: horizontal square PDMS rod (a 2 mm, L 85.5 mm, E 3.65 MPa, 10 elements) "
             "with two N45 magnets (D 2 mm x 3 mm, 0.072 g, 0.0101 A m^2) at the tip (moment +E3) and 36.1 mm "

@@ -65,9 +65,9 @@ class SquareTipForce:
         self.durations = tuple(float(d) for d in durations)
         self.n_nodes = rod.n_nodes
 
-    def desired(self, t: float) -> tuple[tuple[float, float], tuple[float, float]]:
-        """Desired lateral tip position (x, y) and acceleration at time ``t``."""
-        t0 = 0.0
+    def desired(self, t) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Desired lateral tip position (x, y) and acceleration at time ``t`` (float or 0-d tensor)."""
+        t, t0 = float(t), 0.0
         for (pa, pb), T in zip(zip(self.waypoints, self.waypoints[1:]), self.durations):
             if t < t0 + T:
                 s, dds = _min_jerk((t - t0) / T)
@@ -76,7 +76,7 @@ class SquareTipForce:
             t0 += T
         return self.waypoints[-1], (0.0, 0.0)
 
-    def __call__(self, t: float) -> torch.Tensor:
+    def __call__(self, t) -> torch.Tensor:
         (x, y), (ax, ay) = self.desired(t)
         f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
         f[-1, 0] = self.k * x + self.m * ax
@@ -96,7 +96,8 @@ class NodePulse:
         self.n_nodes, self.node, self.t0, self.t1, self.shape = n_nodes, node, float(t0), float(t1), shape
         self.vector = float(amplitude) * torch.tensor(direction, dtype=torch.float64)
 
-    def __call__(self, t: float):
+    def __call__(self, t):
+        t = float(t)  # float or 0-d tensor
         if not (self.t0 <= t < self.t1):
             return None
         f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
@@ -108,7 +109,7 @@ class NodePulse:
 _ELLIPSE_N = 58
 
 
-def _ellipse_scene(name: str, width: float, height: float, description: str, thesis: dict) -> Scene:
+def _ellipse_scene(name: str, title: str, width: float, height: float, description: str, thesis: dict) -> Scene:
     L = ellipse_perimeter(width, height)
     rod = Rod(L, _SECTION, _SOFT, n_elements=_ELLIPSE_N)
 
@@ -117,7 +118,7 @@ def _ellipse_scene(name: str, width: float, height: float, description: str, the
         return {"p": p, "R": R}
 
     return Scene(
-        name=name, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=5.0,
+        name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=5.0,
         initial=build, nodes_of_interest=(29, 28, 30), node_labels=("node 30 (thesis)", "node 29", "node 31"),
         thesis=dict(thesis, width=width, height=height, n_nodes=59, node_of_interest_1based=30, dt=1e-4,
                     duration=5.0, samples=50001, dt_max_thesis_model=1e-3),
@@ -128,7 +129,7 @@ def _ellipse_scene(name: str, width: float, height: float, description: str, the
 
 def ellipse() -> Scene:
     return _ellipse_scene(
-        "ellipse", 0.2, 0.6,
+        "ellipse", "Paper II sim. I: closed loop released from an ellipse 0.2 m x 0.6 m", 0.2, 0.6,
         "Paper II Simulation I: a closed loop (58 elements, 59 nodes) bent into an ellipse 0.2 m wide (x) "
         "and 0.6 m high (y) with both end nodes clamped at the origin (its top vertex), released from "
         "rest; the stress-free shape is straight, so the loop oscillates under its own elastic energy. "
@@ -144,7 +145,8 @@ def ellipse() -> Scene:
 
 def ellipse_horizontal() -> Scene:
     return _ellipse_scene(
-        "ellipse_horizontal", 0.6, 0.2,
+        "ellipse_horizontal", "Paper II sim. I held-out: closed loop released from an ellipse 0.6 m x 0.2 m",
+        0.6, 0.2,
         "Paper II Simulation I, held-out case: the same rod as 'ellipse' bent into an ellipse 0.6 m wide "
         "and 0.2 m high, both ends clamped at the origin (top vertex) with the tangent frame there (the "
         "printed 'identity'; the first chord is 0.73 deg off +x), released from rest. Node of interest: "
@@ -161,6 +163,7 @@ def square_tracking() -> Scene:
     force = SquareTipForce(rod, half, durations)
     return Scene(
         name="square_tracking",
+        title="Paper II sim. II: cantilever whose tip is force-driven around a 10 cm square",
         description=(
             "Paper II Simulation II: a cantilever (radius 1 cm, 55 cm, 8 elements, E 10 MPa, rho 1000, "
             "nu 0.3) clamped at the origin along +z whose tip is driven by lateral forces so that it "
@@ -181,10 +184,12 @@ def square_tracking() -> Scene:
 
 # ------------------------------------------------------------------------------- Simulation III
 _SEMI_N, _SEMI_MID = 100, 50
-_SEMI_FORCE = 0.1  # N (chosen; the held-out profile's amplitude)
+_SEMI_FORCE = 0.02  # N, chosen (not printed): 100 mN snaps the arch through (apex travels ~0.4 m)
+_HELDOUT_AMPLITUDE = 0.1  # N, printed: [0, 0, -100 cos(pi t)] mN
 
 
-def _semicircle_scene(name: str, force: NodePulse, description: str, thesis: dict, chosen: dict) -> Scene:
+def _semicircle_scene(name: str, title: str, force: NodePulse, description: str, thesis: dict,
+                      chosen: dict) -> Scene:
     rod = Rod(0.6, _SECTION, _VERY_SOFT, n_elements=_SEMI_N)
 
     def build(rod_: Rod) -> dict:
@@ -195,7 +200,7 @@ def _semicircle_scene(name: str, force: NodePulse, description: str, thesis: dic
             "dt": 1e-4, "duration": 2.0, "samples": 20001, "end_orientations_deg": {
                 "first": ("identity", 0.0), "last": ("R_z", 181.81)}, "force_node_1based": 51}
     return Scene(
-        name=name, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=2.0,
+        name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=2.0,
         loads=Loads(force=force), initial=build, nodes_of_interest=(_SEMI_MID, 14),
         node_labels=("node 51 (force)", "node 15"), thesis=dict(base, **thesis),
         chosen=dict({"arc": "semicircle x = R(1 - cos phi), y = R sin phi, R = L/pi = 0.191 m, ends "
@@ -206,12 +211,12 @@ def _semicircle_scene(name: str, force: NodePulse, description: str, thesis: dic
 def semicircle() -> Scene:
     force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, -1.0, 0.0), _SEMI_FORCE, 0.0, 0.5)
     return _semicircle_scene(
-        "semicircle", force,
+        "semicircle", "Paper II sim. III: clamped soft semicircle pushed at its middle for 0.5 s", force,
         "Paper II Simulation III: a very soft rod (radius 1 cm, 60 cm, 100 elements, E 10 kPa, rho 1000, "
         "nu 0.3) bent into a semicircle in the xy-plane (ends clamped at (0,0) and (0.38 m, 0), apex up) "
         "and pushed at its middle node (node 51 of 101) towards the chord (-y) for the first 0.5 s, then "
-        "left free. Chosen: force 100 mN (magnitude not printed; the held-out profile's amplitude); the "
-        "end frames are tangent frames, related by R_z(180 deg) (printed 181.81 deg). The clamped "
+        "left free. Chosen: force 20 mN (magnitude not printed; 100 mN, the held-out amplitude, snaps "
+        "the arch through), which moves the apex about 5 cm; the end frames are tangent frames, related by R_z(180 deg) (printed 181.81 deg). The clamped "
         "semicircle is an equilibrium without the force. dt 1e-4 s, 2 s. No gravity, no damping.",
         {"force_direction": (0.0, -1.0, 0.0), "force_interval": (0.0, 0.5),
          "rnn_errors": {"x": (1.36e-3, 0.78e-3), "y": (0.23e-3, 0.13e-3), "z": (2.22e-3, 0.81e-3)}},
@@ -219,15 +224,17 @@ def semicircle() -> Scene:
 
 
 def semicircle_heldout() -> Scene:
-    force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, 0.0, -1.0), _SEMI_FORCE, 1.0, 2.0 + 1e-9, shape="cos_pi_t")
+    force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, 0.0, -1.0), _HELDOUT_AMPLITUDE, 1.0, 2.0 + 1e-9,
+                      shape="cos_pi_t")
     return _semicircle_scene(
-        "semicircle_heldout", force,
+        "semicircle_heldout",
+        "Paper II sim. III held-out: semicircle under an out-of-plane 100 cos(pi t) mN force", force,
         "Paper II Simulation III, held-out case: the clamped semicircle of 'semicircle' at rest until "
         "t = 1 s, then the out-of-plane force [0, 0, -100 cos(pi t)] mN on node 51 for t in [1, 2] s. "
         "dt 1e-4 s, 2 s. No gravity, no damping.",
         {"force": "[0, 0, -100 cos(pi t)] mN", "force_interval": (1.0, 2.0),
          "rnn_errors": {"x": (3.73e-3, 1.25e-3), "y": (2e-3, 0.2e-3), "z": (8.1e-3, 1.2e-3)}},
-        {})
+        {"force_amplitude": _HELDOUT_AMPLITUDE})
 
 
 BUILDERS = (ellipse, ellipse_horizontal, square_tracking, semicircle, semicircle_heldout)

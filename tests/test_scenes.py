@@ -1,0 +1,298 @@
+"""Named scenes (physics.scenes): registry, thesis parameters, geometry, stability, short runs."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from physics import Loads, SolverError, UniformField
+from physics.lie import so3_log
+from physics.scene import MU0, Scene, dipole_moment, table_to_si
+from physics.scenes import SCENES, UnknownSceneError, get_scene, scene_names
+from physics.scenes_paper2 import NodePulse, SquareTipForce
+
+PAPER1 = ["al_inplane", "al_3d", "pdms_inplane", "pdms_tip_magnet", "pdms_circular", "pdms_square_two_magnets"]
+PAPER2 = ["ellipse", "ellipse_horizontal", "square_tracking", "semicircle", "semicircle_heldout"]
+G = 9.81
+
+
+def rel(a, b):
+    return abs(a - b) / abs(b)
+
+
+# ------------------------------------------------------------------------------------ registry
+def test_registry_lists_all_scenes():
+    assert scene_names() == PAPER1 + PAPER2
+    for name in SCENES:
+        assert get_scene(name) is SCENES[name]
+        assert SCENES[name].name == name
+
+
+def test_unknown_scene_names_the_valid_ones():
+    with pytest.raises(KeyError) as exc:
+        get_scene("no_such_scene")
+    assert isinstance(exc.value, UnknownSceneError)
+    msg = str(exc.value)
+    assert "no_such_scene" in msg and all(n in msg for n in SCENES)
+
+
+@pytest.mark.parametrize("name", PAPER1 + PAPER2)
+def test_scene_is_documented_and_consistent(name):
+    sc = get_scene(name)
+    assert len(sc.description) > 150 and "\n" not in sc.summary and len(sc.summary) < 100
+    assert sc.thesis and isinstance(sc.chosen, dict)
+    assert sc.n_steps == round(sc.duration / sc.dt) and sc.n_steps > 0
+    assert all(0 <= i < sc.rod.n_nodes for i in sc.nodes_of_interest)
+    assert len(sc.node_labels) == len(sc.nodes_of_interest)
+    assert sc.loads.gravity is None or tuple(sc.loads.gravity) == sc.gravity
+    if "dt" in sc.thesis:  # printed time step and duration are kept
+        assert sc.dt == sc.thesis["dt"] and sc.duration == sc.thesis["duration"]
+    if "n_elements" in sc.thesis:
+        assert sc.rod.N == sc.thesis["n_elements"]
+
+
+def test_energy_conserved_flags():
+    conserved = {n for n, s in SCENES.items() if s.energy_conserved}
+    assert conserved == {"al_inplane", "al_3d", "pdms_inplane", "pdms_tip_magnet", "ellipse", "ellipse_horizontal"}
+
+
+# ------------------------------------------------------------------------------- thesis values
+def test_table_conversion_units():
+    t = table_to_si(table="x", n_elements=1, M=8.45e-3, J_d=(0, 2.11, 2.11), C1=(2.35e14, 0.88e14, 0.88e14),
+                    C2=(4.42e13, 5.89e13, 5.89e13), F_c=8.29e4, dt=1e-6, duration=1.0)
+    assert t["C1"] == pytest.approx((0.88e5, 0.88e5, 2.35e5))  # axis-first -> (E1, E2, E3), N
+    assert t["C2"] == pytest.approx((5.89e-2, 5.89e-2, 4.42e-2))  # N m^2
+    assert t["J_d"] == pytest.approx((2.11e-9, 2.11e-9, 0.0))  # kg m
+    assert t["F_c"] == pytest.approx(0.0829)  # N/m
+
+
+@pytest.mark.parametrize("name", PAPER1)
+def test_paper1_parameters_match_tables(name):
+    sc = get_scene(name)
+    rod, th = sc.rod, sc.thesis
+    tol = 0.02  # printed values have 3 significant digits; a factor 2 or a unit slip fails
+    assert rel(rod.line_mass, th["M"]) < tol
+    Jd = [j / rod.rotational_inertia_scale for j in rod.line_inertia_d]  # physical inertia
+    for k in (0, 1):
+        assert rel(Jd[k], th["J_d"][k]) < tol
+    assert th["J_d"][2] == 0 and abs(Jd[2]) < 1e-20
+    for k in range(3):
+        assert rel(rod.C1[k], th["C1"][k]) < tol
+    for k in (0, 1):
+        assert rel(rod.C2[k], th["C2"][k]) < tol
+    if name == "pdms_square_two_magnets":  # Saint-Venant torsion 0.1406 a^4 vs the table's a^4/6
+        assert rel(rod.C2[2] / th["C2"][2], 0.1406 * 6) < tol
+    else:
+        assert rel(rod.C2[2], th["C2"][2]) < tol
+    fc = th["F_c"] if not isinstance(th["F_c"], dict) else min(th["F_c"].values())
+    assert rel(rod.line_mass * G, fc) < tol
+    assert math.sqrt(sum(g * g for g in sc.gravity)) == pytest.approx(G)
+    errors = th["errors"]
+    assert errors and all(0 < e["mean"] <= e["max"] < 2e-3 and 1 < e["max_percent"] < 6 for e in errors.values())
+
+
+def test_magnets_follow_the_thesis():
+    mag = get_scene("pdms_tip_magnet").rod.magnets[0]
+    V = 4 * math.pi * 1e-9  # 4 pi mm^3
+    lo, hi = 1.32 * V / MU0, 1.37 * V / MU0
+    assert lo <= mag.moment[2] <= hi and mag.moment[:2] == (0.0, 0.0)
+    assert mag.mass == 9.6e-5 and mag.s == pytest.approx(0.06055)
+    assert dipole_moment(1.0, V) == pytest.approx(1e-2)
+    sq = get_scene("pdms_square_two_magnets").rod
+    s = sorted(m.s for m in sq.magnets)
+    assert s == pytest.approx([0.0855 - 0.0361, 0.0855])
+    assert all(m.mass == 7.2e-5 for m in sq.magnets)
+    assert sq.magnets[0].moment[2] == -sq.magnets[1].moment[2] != 0
+    assert get_scene("pdms_circular").rod.magnets == get_scene("pdms_tip_magnet").rod.magnets
+
+
+# --------------------------------------------------------------------------------- stability
+@pytest.mark.parametrize("name", PAPER1 + PAPER2)
+def test_dt_below_stability_limit(name):
+    st = get_scene(name).stability()
+    assert st["ratio"] <= 0.8, st
+
+
+@pytest.mark.parametrize("name", ["al_inplane", "al_3d", "pdms_square_two_magnets"])
+def test_mass_scaling_is_needed_and_harmless(name):
+    from dataclasses import replace
+
+    sc = get_scene(name)
+    phys = replace(sc.rod, rotational_inertia_scale=1.0)
+    dt_phys = phys.stable_time_step().dt_max
+    assert rel(dt_phys, sc.chosen["dt_max_physical"]) < 0.05
+    assert sc.dt > dt_phys  # the printed step is unstable without the scaling
+    w_phys = float(phys.natural_frequencies(n_modes=1)[0])
+    w_scaled = float(sc.rod.natural_frequencies(n_modes=1)[0])
+    assert rel(w_scaled, w_phys) < 1e-3
+
+
+# ---------------------------------------------------------------------------------- geometry
+def _angle_deg(R):
+    return math.degrees(float(so3_log(R).norm()))
+
+
+def test_cantilever_initial_shapes():
+    cfg = get_scene("al_inplane").initial_configuration()
+    p, R = cfg["p"], cfg["R"]
+    assert _angle_deg(R[-1]) == pytest.approx(3.69, abs=1e-9)
+    assert float(p[-1, 0]) == pytest.approx(2 / 3 * 0.2 * math.tan(math.radians(3.69)), rel=0.01)
+    assert float((p[1:] - p[:-1]).norm(dim=-1).sum()) == pytest.approx(0.2, rel=1e-4)
+    tip = get_scene("al_3d").initial_configuration()["p"][-1]
+    assert tip[:2].tolist() == pytest.approx([10e-3, -8e-3], abs=1e-9)
+    R = get_scene("pdms_tip_magnet").initial_configuration()["R"][-1]
+    w = so3_log(R)
+    assert math.degrees(float(w[0])) == pytest.approx(-41.74, abs=1e-9) and float(w[1:].abs().max()) < 1e-12
+
+
+def test_ellipse_geometry_reconciles_printed_end_orientations():
+    cfg = get_scene("ellipse").initial_configuration()
+    p, R = cfg["p"], cfg["R"]
+    assert p.shape == (59, 3) and float(p[0].abs().max()) == 0 and float(p[-1].abs().max()) == 0
+    assert torch.allclose(R[0], R[-1]) and torch.allclose(R[0][:, 2], torch.tensor([1.0, 0, 0], dtype=R.dtype))
+    assert p[29].tolist() == pytest.approx([0.0, -0.6, 0.0], abs=1e-9)
+    assert float(p[:, 0].max() - p[:, 0].min()) == pytest.approx(0.2, rel=1e-3)
+    chord = p[1] - p[0]
+    assert abs(math.degrees(math.atan2(float(chord[1]), float(chord[0])))) == pytest.approx(18.07, abs=0.2)
+    assert get_scene("ellipse").rod.length == pytest.approx(1.3365, rel=1e-4)
+    ph = get_scene("ellipse_horizontal").initial_configuration()["p"]
+    ch = ph[1] - ph[0]
+    assert abs(math.degrees(math.atan2(float(ch[1]), float(ch[0])))) < 1.0  # printed: identity
+    assert ph[29].tolist() == pytest.approx([0.0, -0.2, 0.0], abs=1e-9)
+
+
+def test_semicircle_geometry_and_end_frames():
+    cfg = get_scene("semicircle").initial_configuration()
+    p, R = cfg["p"], cfg["R"]
+    r = 0.6 / math.pi
+    assert p[50].tolist() == pytest.approx([r, r, 0.0], abs=1e-12)
+    assert p[-1].tolist() == pytest.approx([2 * r, 0.0, 0.0], abs=1e-12)
+    rel_rot = so3_log(R[-1] @ R[0].T)  # world-frame rotation taking the first end frame to the last
+    assert math.degrees(float(rel_rot.norm())) == pytest.approx(181.81, abs=2.0)
+    assert float(rel_rot[:2].abs().max()) < 1e-6  # about z
+
+
+def test_initial_frames_are_rotations_tangent_to_the_centreline():
+    for name in SCENES:
+        cfg = get_scene(name).initial_configuration()
+        p = cfg["p"]
+        assert p.shape == (SCENES[name].rod.n_nodes, 3) and p.dtype == torch.float64
+        if "R" in cfg:
+            R = cfg["R"]
+            assert float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-12
+            d = p[1:] - p[:-1]
+            d = d / d.norm(dim=-1, keepdim=True)
+            e3 = R[:-1, :, 2] + R[1:, :, 2]
+            e3 = e3 / e3.norm(dim=-1, keepdim=True)
+            assert float((d * e3).sum(-1).min()) > 0.999  # frames follow the curve
+
+
+# ------------------------------------------------------------------------------ loads/fields
+def test_field_profiles():
+    B = get_scene("pdms_circular").loads.field.B
+    assert B(0.0).tolist() == pytest.approx([0.0, 22.25e-3, 0.0])
+    assert B(0.5).tolist() == pytest.approx([14.5e-3, 7.75e-3, 0.0])
+    assert B(2.0).tolist() == pytest.approx(B(0.0).tolist())
+    Bs = get_scene("pdms_square_two_magnets").loads.field.B
+    assert Bs(0.0).tolist() == pytest.approx([0, 0, 20e-3])
+    assert Bs(7.5).tolist() == pytest.approx([0, 0, 19.85e-3])
+    assert Bs(3.75).tolist() == pytest.approx([0, 19.925e-3, 0], abs=1e-12)
+    assert Bs(torch.tensor(7.5)).tolist() == pytest.approx(Bs(7.5).tolist())
+    assert B(torch.tensor(0.5, dtype=torch.float64)).tolist() == pytest.approx(B(0.5).tolist())
+
+
+def test_square_tracking_force_schedule():
+    sc = get_scene("square_tracking")
+    f = sc.loads.force
+    assert isinstance(f, SquareTipForce)
+    E, I, L = 10e6, math.pi * 0.01**4 / 4, 0.55
+    assert f.k == pytest.approx(3 * E * I / L**3)
+    for t, xy in ((0.0, (0, 0)), (2.0, (0.05, 0.05)), (5.0, (-0.05, 0.05)), (8.0, (-0.05, -0.05)),
+                  (11.0, (0.05, -0.05)), (14.0, (0.05, 0.05)), (16.0, (0, 0))):
+        assert f.desired(t)[0] == pytest.approx(xy, abs=1e-12)
+        F = f(t)
+        assert F.shape == (9, 3) and float(F[:-1].abs().max()) == 0 and float(F[-1, 2]) == 0
+        assert F[-1, :2].tolist() == pytest.approx([f.k * xy[0], f.k * xy[1]], abs=1e-12)
+
+
+def test_semicircle_pulses():
+    f = get_scene("semicircle").loads.force
+    assert isinstance(f, NodePulse)
+    F = f(0.25)
+    assert F[50].tolist() == pytest.approx([0, -0.02, 0]) and float(F.abs().sum()) == pytest.approx(0.02)
+    assert f(0.5) is None and f(1.5) is None
+    h = get_scene("semicircle_heldout").loads.force
+    assert h(0.5) is None
+    assert h(1.0)[50].tolist() == pytest.approx([0, 0, 0.1])  # -100 cos(pi) mN
+    assert h(1.5)[50].tolist() == pytest.approx([0, 0, 0.0], abs=1e-12)
+    # the LGVI passes time as a 0-d tensor
+    assert h(torch.tensor(1.0, dtype=torch.float64))[50].tolist() == pytest.approx([0, 0, 0.1])
+    assert f(torch.tensor(0.6, dtype=torch.float32)) is None
+
+
+# ------------------------------------------------------------------------------------ runs
+@pytest.mark.parametrize("name", PAPER1 + PAPER2)
+def test_short_run_is_finite(name):
+    sc = get_scene(name)
+    integ = sc.make_integrator(stability="off")  # the limit is checked in test_dt_below_stability_limit
+    s0 = sc.initial_state(integ)
+    s, tr = integ.simulate(s0, n_steps=200, record_every=50)
+    assert torch.isfinite(tr.p).all() and tr.newton_residual < 1e-10
+    assert float(integ.orthogonality_error(s)) < 1e-10
+    fixed = [0] if sc.bc == "clamped-free" else [0, sc.rod.n_nodes - 1]
+    assert torch.equal(s.p[fixed], s0.p[fixed]) and torch.equal(s.R[fixed], s0.R[fixed])
+    assert float((s.p - s0.p).abs().max()) < 0.05 * sc.rod.length  # 200 steps: no blow-up
+
+
+def test_make_integrator_overrides_and_default_stability_check():
+    sc = get_scene("pdms_inplane")
+    integ = sc.make_integrator(dtype=torch.float32, dt=4e-5)
+    assert integ.dt == 4e-5 and integ.params.mass.dtype == torch.float32
+    assert integ.stability_estimate is not None and integ.stability_estimate.dt_max > sc.dt
+    s = sc.initial_state(integ)
+    assert s.p.dtype == torch.float32
+    with pytest.raises(ValueError, match="stability limit"):
+        sc.make_integrator(dt=1e-3)
+
+
+def test_conservative_scene_keeps_its_energy():
+    sc = get_scene("pdms_tip_magnet")
+    integ = sc.make_integrator(stability="off")
+    _, tr = integ.simulate(sc.initial_state(integ), n_steps=400, record_every=40, record_energy=True)
+    E = tr.energy
+    assert float((E - E[0]).abs().max()) < 1e-3 * float(E[0].abs())
+
+
+def test_magnetic_scenes_start_in_equilibrium():
+    for name in ("pdms_circular", "pdms_square_two_magnets"):
+        sc = get_scene(name)
+        B0 = sc.loads.field.B(0.0)
+        integ = sc.make_integrator(stability="off", loads=Loads(gravity=sc.gravity, field=UniformField(B0)))
+        s0 = sc.initial_state(integ)
+        assert abs(float(s0.p[-1, 1])) > 0.005  # bent by gravity and the field, not straight
+        s, _ = integ.simulate(s0, n_steps=100, record_every=100)
+        assert float((s.p - s0.p).abs().max()) < 1e-8
+
+
+def test_scene_validation():
+    rod = get_scene("pdms_inplane").rod
+    with pytest.raises(ValueError, match="dt"):
+        Scene(name="x", description="d", rod=rod, bc="clamped-free", dt=-1.0, duration=1.0)
+    with pytest.raises(ValueError, match="nodes_of_interest"):
+        Scene(name="x", description="d", rod=rod, bc="clamped-free", dt=1e-4, duration=1.0, nodes_of_interest=(99,))
+    with pytest.raises(ValueError):
+        Scene(name="x", description="d", rod=rod, bc="nonsense", dt=1e-4, duration=1.0)
+    with pytest.raises(ValueError, match="gravity"):
+        Scene(name="x", description="d", rod=rod, bc="clamped-free", dt=1e-4, duration=1.0, gravity=(0, 0, 1),
+              loads=Loads(gravity=(0, 0, 2)))
+    sc = Scene(name="x", description="A test. More.", rod=rod, bc="clamped-free", dt=1e-4, duration=1.0)
+    assert sc.nodes_of_interest == (rod.n_nodes - 1,) and sc.summary == "A test."
+    assert sc.initial_configuration()["p"][-1, 2] == pytest.approx(rod.length)
+
+
+def test_solver_error_is_reported_not_nan():
+    sc = get_scene("pdms_inplane")
+    integ = sc.make_integrator(dt=6e-4, stability="off")  # ~2.6x the stability limit
+    with pytest.raises(SolverError):
+        integ.simulate(sc.initial_state(integ), n_steps=3000)
