@@ -21,7 +21,7 @@ __all__ = ["stiffness_and_mass", "frequencies", "max_frequency"]
 _DENSE_MAX = 1500
 
 
-def _element_hessians(rod):
+def _element_hessians(rod, energy_fn=elastic_energy):
     prm = rod.params(torch.float64)
     N = rod.N
 
@@ -29,16 +29,17 @@ def _element_hessians(rod):
         pa, pb = x[0:3], x[6:9] + torch.stack((torch.zeros_like(l), torch.zeros_like(l), l))
         Ra, Rb = so3_exp(x[3:6]), so3_exp(x[9:12])
         sub = prm._replace(l=l[None], C1=C1[None], C2=C2[None], kappa0=k0[None])
-        return elastic_energy(torch.stack((pa, pb)), torch.stack((Ra, Rb)), sub)
+        return energy_fn(torch.stack((pa, pb)), torch.stack((Ra, Rb)), sub)
 
     x0 = torch.zeros(N, 12, dtype=torch.float64)
     H = torch.func.vmap(torch.func.hessian(energy))(x0, prm.l, prm.C1, prm.C2, prm.kappa0)
     return H.numpy(), prm
 
 
-def stiffness_and_mass(rod):
-    """Sparse stiffness K (6n x 6n, DOFs [dp, dtheta] per node) and the diagonal mass vector."""
-    H, prm = _element_hessians(rod)
+def stiffness_and_mass(rod, energy_fn=elastic_energy):
+    """Sparse stiffness K (6n x 6n, DOFs [dp, dtheta] per node) and the diagonal mass vector.
+    ``energy_fn(p, R, params)`` is the discrete elastic energy (default: the LGVI's)."""
+    H, prm = _element_hessians(rod, energy_fn)
     n, N = rod.n_nodes, rod.N
     rows, cols, vals = [], [], []
     idx = np.arange(12)
@@ -55,8 +56,8 @@ def stiffness_and_mass(rod):
     return K, mass
 
 
-def _reduced(rod, bc: str):
-    K, mass = stiffness_and_mass(rod)
+def _reduced(rod, bc: str, energy_fn=elastic_energy):
+    K, mass = stiffness_and_mass(rod, energy_fn)
     n = rod.n_nodes
     fixed = {"clamped-free": [0], "prescribed-base": [0], "clamped-clamped": [0, n - 1], "free-free": []}
     if bc not in fixed:
@@ -68,9 +69,9 @@ def _reduced(rod, bc: str):
     return A
 
 
-def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6) -> torch.Tensor:
+def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elastic_energy) -> torch.Tensor:
     """Lowest ``n_modes`` non-rigid angular frequencies (rad/s), float64."""
-    A = _reduced(rod, bc)
+    A = _reduced(rod, bc, energy_fn)
     n_rigid = 6 if bc == "free-free" else 0
     k = min(n_modes + n_rigid, A.shape[0])
     if A.shape[0] <= _DENSE_MAX:
