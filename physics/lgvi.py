@@ -30,7 +30,7 @@ from torch import Tensor
 
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
-from .lie import hat, mm3, mtm3, mtv3
+from .lie import mtm3, mtv3, mv3
 from .loads import Loads, magnet_node_loads
 from .rod import Rod, RodParams
 
@@ -65,38 +65,42 @@ class Trajectory(NamedTuple):
     newton_residual: float  # largest residual seen
 
 
-def _solve3(A: Tensor, b: Tensor) -> Tensor:
-    """Closed-form solution of A x = b for (..., 3, 3) by Cramer's rule (no generic linalg)."""
-    c0, c1, c2 = A[..., :, 0], A[..., :, 1], A[..., :, 2]
-    x12 = torch.linalg.cross(c1, c2, dim=-1)
-    det = (c0 * x12).sum(-1)
-    x0 = (b * x12).sum(-1)
-    x1 = (c0 * torch.linalg.cross(b, c2, dim=-1)).sum(-1)
-    x2 = (c0 * torch.linalg.cross(c1, b, dim=-1)).sum(-1)
-    return torch.stack((x0, x1, x2), -1) / det[..., None]
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    return (a * b).sum(-1, keepdim=True)
+
+
+def _solve_diag_skew(d: Tensor, u: Tensor, b: Tensor) -> Tensor:
+    """Solve ``(diag(d) + u^) x = b`` in closed form:
+    ``adj = adj(diag d) + u u^T - (diag(d) u)^``, ``det = d1 d2 d3 + sum_i d_i u_i^2``."""
+    d1, d2, d3 = d.unbind(-1)
+    adj_d = torch.stack((d2 * d3, d1 * d3, d1 * d2), -1)
+    det = (d1 * d2 * d3)[..., None] + _dot(d, u * u)
+    return (adj_d * b + u * _dot(u, b) - torch.linalg.cross(d * u, b, dim=-1)) / det
 
 
 def _cayley_residual(f: Tensor, u: Tensor, J: Tensor) -> Tensor:
-    return u + torch.linalg.cross(u, f, dim=-1) + (u * f).sum(-1, keepdim=True) * f - 2 * J * f
+    return u + torch.linalg.cross(u, f, dim=-1) + _dot(u, f) * f - 2 * J * f
 
 
 def solve_cayley(u: Tensor, J: Tensor, tol: float, max_iter: int = 20, fixed_iters: int | None = None):
     """Solve ``(F J_d - J_d F^T)^vee = u`` for ``F = (I + f^)(I - f^)^{-1}``, per node.
 
-    ``J`` (..., 3) principal inertia. Returns ``(f, iterations, residual)``, where ``residual``
-    (...,) is ``|G(f)| / (2 max J)`` (same units as ``f``). With ``fixed_iters`` the loop runs that
-    many Newton steps without data-dependent control flow (for ``torch.compile``).
+    ``J`` (..., 3) principal inertia. Newton's method on ``G(f) = u + u x f + (u.f) f - 2 J f``,
+    whose Jacobian ``u^ + diag(u.f - 2 J) + f u^T`` is inverted in closed form (diagonal plus
+    skew, then Sherman-Morrison for the rank-one term): no 3x3 matrices are formed. Returns
+    ``(f, iterations, residual)``, ``residual`` (...,) being ``|G(f)| / (2 max J)`` (units of ``f``).
+    With ``fixed_iters`` the loop has no data-dependent control flow (for ``torch.compile``).
     """
     f = u / (2 * J)
     n_it = fixed_iters if fixed_iters is not None else max_iter
-    U = hat(u) - 2 * torch.diag_embed(J)  # the f-independent part of the Jacobian
-    eye = torch.eye(3, dtype=u.dtype, device=u.device)
     it = 0
     for it in range(1, n_it + 1):
-        uf = (u * f).sum(-1, keepdim=True)
+        uf = _dot(u, f)
         G = u + torch.linalg.cross(u, f, dim=-1) + uf * f - 2 * J * f
-        A = U + uf[..., None] * eye + f.unsqueeze(-1) * u.unsqueeze(-2)
-        df = _solve3(A, -G)
+        d = uf - 2 * J
+        y = _solve_diag_skew(d, u, -G)
+        z = _solve_diag_skew(d, u, f)
+        df = y - z * (_dot(u, y) / (1 + _dot(u, z)))
         f = f + df
         if fixed_iters is None and float(df.abs().max()) <= tol:
             break
@@ -104,14 +108,17 @@ def solve_cayley(u: Tensor, J: Tensor, tol: float, max_iter: int = 20, fixed_ite
     return f, it, res
 
 
-def _cay2(f: Tensor) -> Tensor:
-    """(I + f^)(I - f^)^{-1} = I + 2/(1+|f|^2) (f^ + f^ f^)."""
-    fx, fy, fz = f.unbind(-1)
-    o = torch.zeros_like(fx)
-    Fh = torch.stack((o, -fz, fy, fz, o, -fx, -fy, fx, o), -1).reshape(*f.shape, 3)
-    c = 2.0 / (1.0 + (f * f).sum(-1))
-    eye = torch.eye(3, dtype=f.dtype, device=f.device)
-    return eye + c[..., None, None] * (Fh + mm3(Fh, Fh))
+def _rotate_by_cayley(R: Tensor, Pi: Tensor, f: Tensor):
+    """``R F`` and ``F^T Pi`` for ``F = (I + f^)(I - f^)^{-1} = a I + c f^ + c f f^T``
+    (``c = 2/(1+|f|^2)``, ``a = 1 - c |f|^2``) without forming F."""
+    ff = _dot(f, f)
+    c = 2.0 / (1.0 + ff)
+    a = 1.0 - c * ff
+    Rf = mv3(R, f)
+    RF = a[..., None] * R + c[..., None] * (torch.linalg.cross(R, f.unsqueeze(-2).expand_as(R), dim=-1)
+                                            + Rf.unsqueeze(-1) * f.unsqueeze(-2))
+    FtPi = a * Pi - c * torch.linalg.cross(f, Pi, dim=-1) + c * f * _dot(f, Pi)
+    return RF, FtPi
 
 
 @dataclass
@@ -265,9 +272,7 @@ class LGVI:
         p1 = p + h * v1
         Pi = (pi + h * (ti + te)) * free
         f, iters, res = solve_cayley(h * Pi, prm.inertia, self.newton_tol, self.newton_max_iter, fixed_iters)
-        F = _cay2(f)
-        R1 = mm3(R, F)
-        pi1 = mtv3(F, Pi)  # F^T Pi
+        R1, pi1 = _rotate_by_cayley(R, Pi, f)
         t1 = t + h
         if self.bc is Boundary.PRESCRIBED_BASE:
             p1, v1, R1, pi1 = self._apply_base(p, R, p1, v1, R1, pi1, t1)

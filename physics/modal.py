@@ -7,6 +7,8 @@ per-element 12x12 Hessians computed with ``torch.func``.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.linalg
 import scipy.sparse
@@ -83,11 +85,12 @@ def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elast
     return torch.tensor(np.sqrt(np.clip(lam, 0.0, None)), dtype=torch.float64)
 
 
+@functools.lru_cache(maxsize=64)
 def max_frequency(rod) -> float:
     """Fastest angular frequency of the free-free linearised model (rad/s)."""
     A = _reduced(rod, "free-free")
-    if A.shape[0] <= _DENSE_MAX:
-        lam = scipy.linalg.eigh(A.toarray(), eigvals_only=True, subset_by_index=[A.shape[0] - 1, A.shape[0] - 1])[0]
+    if A.shape[0] <= _DENSE_MAX:  # a full symmetric eigensolve is faster here than a subset one
+        lam = scipy.linalg.eigvalsh(A.toarray())[-1]
     else:
         lam = scipy.sparse.linalg.eigsh(A, k=1, which="LA", return_eigenvectors=False)[0]
     return float(np.sqrt(lam))

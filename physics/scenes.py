@@ -13,6 +13,11 @@ are horizontal with gravity along -E2 (the text: "gravity acting along E2") and 
 E2E3-plane. Moduli follow reference/README.md: PDMS 365.12 kPa (the printed "MPa" is a typo) and
 3.6512 MPa (ten times that) for the square rod of Table I.7, which reproduce its C1, C2.
 
+Initial shapes. A released bend is the tip-load bending shape (:func:`physics.shapes.bent_cantilever`)
+with nodes placed free of discrete shear and axial strain, so only bending energy is stored; the
+driven magnetic scenes start at rest in static equilibrium under gravity and the field at t = 0
+(:func:`physics.relax.static_equilibrium`).
+
 Damping. The thesis captures dissipation online with the estimation filters (I.17)-(I.21). The
 free-vibration scenes here are undamped (their LGVI energy is conserved); the two driven,
 quasi-static magnetic scenes get a light viscous damping of 5 % of critical in the first mode
@@ -139,7 +144,7 @@ def al_3d() -> Scene:
     scale = 80.0
     rod = Rod(0.2, CircularSection(1e-3), _AL, n_elements=15, rotational_inertia_scale=scale)
     offset = (10e-3, -8e-3)
-    th = cantilever_rotation_for_offset(0.2, offset)
+    th = cantilever_rotation_for_offset(rod.arclength.tolist(), offset)
     return Scene(
         name="al_3d",
         title="Paper I exp. 2: hanging Al rod (d 1 mm, L 200 mm) released from an out-of-plane bend",
@@ -147,8 +152,8 @@ def al_3d() -> Scene:
             "Paper I experiment 2: hanging aluminium rod (d 1 mm, L 200 mm, 15 elements) released from an "
             "out-of-plane tip deflection. The printed tip offsets are used: +10 mm along E1 (theta_E1E3 = "
             "6.52 deg) and -8 mm along E2 (theta_E1E2 = -5.53 deg); the printed angles are not consistent "
-            "with those offsets on a 200 mm cantilever (the tip-load shape gives tip rotations of 4.30 and "
-            "3.44 deg), so the offsets are kept and the angles recorded. Gravity along the rod (+E3 down). "
+            "with those offsets on a 200 mm cantilever (the tip-load shape gives tip rotations of 4.31 and "
+            "3.45 deg), so the offsets are kept and the angles recorded. Gravity along the rod (+E3 down). "
             "dt = 1e-6 s as printed with the rotational inertia mass-scaled by 80 (physical dt_max 1.5e-7 "
             "s; dt/dt_max 0.73; bending frequencies change < 0.01 %). Undamped."),
         rod=rod, bc="clamped-free", dt=1e-6, duration=1.5, gravity=(0.0, 0.0, G_EARTH),
@@ -263,9 +268,10 @@ def pdms_square_two_magnets() -> Scene:
             "E2E3-plane by a uniform field. Chosen profile: |B| falls linearly from 20 to 19.85 mT over "
             "7.5 s while its direction sweeps from +E3 to +E2 and back (angle 90 deg sin^2(pi t/7.5 s)), so "
             "the field starts and ends along the rod. The rod starts at rest in static equilibrium under "
-            "gravity (along -E2) and B(0); damping 0.007 N s/m^2 (5 % of critical in mode 1). The printed dt = 1e-4 s is 2.9x the physical limit (3.5e-5 "
-            "s), so the rod's rotational inertia is mass-scaled by 16 (dt/dt_max 0.74). Torsion uses "
-            "Saint-Venant's 0.1406 a^4 (Table I.7 used a^4/6)."),
+            "gravity (along -E2) and B(0); damping 0.007 N s/m^2 (5 % of critical in mode 1). The "
+            "printed dt = 1e-4 s is 2.9x the physical limit (3.5e-5 s), so the rod's rotational inertia "
+            "is mass-scaled by 16 (dt/dt_max 0.74). Torsion uses Saint-Venant's 0.1406 a^4 (Table I.7 "
+            "used a^4/6). The middle magnet sits inside element 5 (xi 0.78); node 6 is reported for it."),
         rod=rod, bc="clamped-free", dt=1e-4, duration=7.5, gravity=(0.0, -G_EARTH, 0.0),
         loads=Loads(field=UniformField(field)), initial=_equilibrium((0.0, -G_EARTH, 0.0), field(0.0)),
         nodes_of_interest=(10, 6), node_labels=("tip", "node 6 (middle magnet at 5.78 elements)"),

@@ -8,9 +8,10 @@ normal of the plane of the curve, and the printed orientations are reconciled as
 * Ellipse (Simulation I): both ends sit at the origin on the ellipse's top vertex where the
   tangent is +x, so both clamped frames equal the tangent frame there (E3 = +x, E2 = +z). The
   printed ``R_y(18.07 deg)`` and ``R_y(341.92 deg)`` are the directions of the first and last
-  element chords: with 58 equal-arclength elements our chords make -18.14 and +18.14 deg with +x
-  (a rotation about the loop's normal; the thesis's "y"). For the horizontal ellipse the chords
-  make 0.73 deg, i.e. the printed "identity".
+  element chords (a rotation about the loop's normal; the thesis's "y"): 58 elements at equal
+  arclength give -18.14 and +18.14 deg; our strain-free node placement (:func:`~physics.shapes.
+  ellipse_loop`) gives -/+19.0 deg. For the horizontal ellipse the chords make 0.7 deg, i.e. the
+  printed "identity".
 * Semicircle (Simulation III): the relative rotation between the two clamped end frames is
   ``R_z(180 deg)``, the printed ``R_z(181.81 deg)`` up to 1.81 deg (one element's turning angle is
   1.8 deg, so the printed value is most likely the last node's frame counted one element on).
@@ -107,22 +108,27 @@ class NodePulse:
 
 # ------------------------------------------------------------------------------- Simulation I
 _ELLIPSE_N = 58
+# The one rod of Simulation I: equal elements whose length closes the 0.2 m x 0.6 m ellipse with no
+# axial strain (shapes.ellipse_loop); the held-out horizontal ellipse is scaled to close with it.
+_ELLIPSE_L = ellipse_loop(_ELLIPSE_N, 0.2, 0.6)[2]
+_ELLIPSE_ROD = Rod(_ELLIPSE_N * _ELLIPSE_L, _SECTION, _SOFT, n_elements=_ELLIPSE_N)
 
 
 def _ellipse_scene(name: str, title: str, width: float, height: float, description: str, thesis: dict) -> Scene:
-    L = ellipse_perimeter(width, height)
-    rod = Rod(L, _SECTION, _SOFT, n_elements=_ELLIPSE_N)
-
     def build(rod_: Rod) -> dict:
-        p, R = ellipse_loop(rod_.N, width, height)
+        p, R, _ = ellipse_loop(rod_.N, width, height, element_length=rod_.lengths[0])
         return {"p": p, "R": R}
 
+    scale = _ELLIPSE_L / ellipse_loop(_ELLIPSE_N, width, height)[2]
     return Scene(
-        name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=5.0,
-        initial=build, nodes_of_interest=(29, 28, 30), node_labels=("node 30 (thesis)", "node 29", "node 31"),
+        name=name, title=title, description=description, rod=_ELLIPSE_ROD, bc="clamped-clamped", dt=1e-4,
+        duration=5.0, initial=build, nodes_of_interest=(29, 28, 30),
+        node_labels=("node 30 (thesis)", "node 29", "node 31"),
         thesis=dict(thesis, width=width, height=height, n_nodes=59, node_of_interest_1based=30, dt=1e-4,
                     duration=5.0, samples=50001, dt_max_thesis_model=1e-3),
-        chosen={"radius": 0.01, "E": _SOFT.E, "density": _SOFT.density, "nu": _SOFT.nu, "length": L,
+        chosen={"radius": 0.01, "E": _SOFT.E, "density": _SOFT.density, "nu": _SOFT.nu,
+                "length": _ELLIPSE_ROD.length, "perimeter": ellipse_perimeter(width, height),
+                "ellipse_scale": scale, "nodes": "equal elements with zero axial strain, closing the loop",
                 "end_frames": "tangent frame at the origin (E3 = +x, E2 = +z) for both ends"},
     )
 
@@ -133,11 +139,13 @@ def ellipse() -> Scene:
         "Paper II Simulation I: a closed loop (58 elements, 59 nodes) bent into an ellipse 0.2 m wide (x) "
         "and 0.6 m high (y) with both end nodes clamped at the origin (its top vertex), released from "
         "rest; the stress-free shape is straight, so the loop oscillates under its own elastic energy. "
-        "Chosen (not printed): radius 1 cm, E 10 MPa, rho 1000, nu 0.3 (as Simulation II); length = "
-        "ellipse perimeter 1.3365 m; nodes at equal arclength; both clamped frames are the tangent frame "
-        "at the origin, the printed R_y(18.07 deg)/R_y(341.92 deg) being the first/last chord directions "
-        "(ours: -/+18.14 deg about the normal). Node of interest: node 30 of 59 (0-based 29) at (0, -0.6). "
-        "dt 1e-4 s (dt/dt_max 0.63), 5 s (50001 samples as in the thesis). No gravity, no damping.",
+        "Chosen (not printed): radius 1 cm, E 10 MPa, rho 1000, nu 0.3 (as Simulation II). The nodes lie "
+        "on the ellipse with every element free of axial strain, which sets the rod length to 1.3283 m "
+        "(perimeter 1.3365 m: chords are shorter than arcs). Both clamped frames are the tangent frame "
+        "at the origin; the printed R_y(18.07 deg)/R_y(341.92 deg) are the first/last chord directions "
+        "about the loop's normal (ours: -/+19.0 deg; nodes at equal arclength would give 18.14 deg). "
+        "Node of interest: node 30 of 59 (0-based 29) at (0, -0.6). dt 1e-4 s (dt/dt_max 0.64), 5 s "
+        "(50001 samples as in the thesis). No gravity, no damping.",
         {"end_orientations_deg": {"first": ("R_y", 18.07), "last": ("R_y", 341.92)},
          "node_of_interest_xy": (-0.01, -0.59),
          "rnn_errors": {"x": (1.57e-3, 0.27e-3), "y": (2.27e-3, 0.46e-3), "z": (0.23e-3, 0.06e-3)}})
@@ -147,10 +155,11 @@ def ellipse_horizontal() -> Scene:
     return _ellipse_scene(
         "ellipse_horizontal", "Paper II sim. I held-out: closed loop released from an ellipse 0.6 m x 0.2 m",
         0.6, 0.2,
-        "Paper II Simulation I, held-out case: the same rod as 'ellipse' bent into an ellipse 0.6 m wide "
-        "and 0.2 m high, both ends clamped at the origin (top vertex) with the tangent frame there (the "
-        "printed 'identity'; the first chord is 0.73 deg off +x), released from rest. Node of interest: "
-        "node 30 (0-based 29) at (0, -0.2). dt 1e-4 s, 5 s. No gravity, no damping.",
+        "Paper II Simulation I, held-out case: the same rod as 'ellipse' (same element length) bent into "
+        "an ellipse 0.6 m wide and 0.2 m high (scaled by 1.00008 so that it closes with that rod), both "
+        "ends clamped at the origin (top vertex) with the tangent frame there (the printed 'identity'; "
+        "the first chord is 0.7 deg off +x), released from rest. Node of interest: node 30 (0-based 29) "
+        "at (0, -0.2). dt 1e-4 s, 5 s. No gravity, no damping.",
         {"end_orientations_deg": {"first": ("identity", 0.0), "last": ("identity", 0.0)},
          "node_of_interest_xy": (-0.01, -0.19),
          "rnn_errors": {"x": (26.33e-3, 3.37e-3), "y": (21.71e-3, 3.70e-3), "z": (4.92e-3, 4.22e-3)}})
@@ -204,7 +213,8 @@ def _semicircle_scene(name: str, title: str, force: NodePulse, description: str,
         loads=Loads(force=force), initial=build, nodes_of_interest=(_SEMI_MID, 14),
         node_labels=("node 51 (force)", "node 15"), thesis=dict(base, **thesis),
         chosen=dict({"arc": "semicircle x = R(1 - cos phi), y = R sin phi, R = L/pi = 0.191 m, ends "
-                             "(0,0) and (2R,0), apex (R,R)"}, **chosen),
+                             "(0,0) and (2R,0), apex (R,R); chords lengthened ~1.6e-4 to be strain-free"},
+                    **chosen),
     )
 
 
@@ -216,8 +226,10 @@ def semicircle() -> Scene:
         "nu 0.3) bent into a semicircle in the xy-plane (ends clamped at (0,0) and (0.38 m, 0), apex up) "
         "and pushed at its middle node (node 51 of 101) towards the chord (-y) for the first 0.5 s, then "
         "left free. Chosen: force 20 mN (magnitude not printed; 100 mN, the held-out amplitude, snaps "
-        "the arch through), which moves the apex about 5 cm; the end frames are tangent frames, related by R_z(180 deg) (printed 181.81 deg). The clamped "
-        "semicircle is an equilibrium without the force. dt 1e-4 s, 2 s. No gravity, no damping.",
+        "the arch through), which moves the apex about 5 cm; the end frames are tangent frames, related "
+        "by R_z(180 deg) (printed 181.81 deg); nodes free of shear/axial strain, so the clamped "
+        "semicircle is an exact discrete equilibrium without the force. dt 1e-4 s, 2 s. No gravity, "
+        "no damping.",
         {"force_direction": (0.0, -1.0, 0.0), "force_interval": (0.0, 0.5),
          "rnn_errors": {"x": (1.36e-3, 0.78e-3), "y": (0.23e-3, 0.13e-3), "z": (2.22e-3, 0.81e-3)}},
         {"force_magnitude": _SEMI_FORCE})
@@ -230,7 +242,8 @@ def semicircle_heldout() -> Scene:
         "semicircle_heldout",
         "Paper II sim. III held-out: semicircle under an out-of-plane 100 cos(pi t) mN force", force,
         "Paper II Simulation III, held-out case: the clamped semicircle of 'semicircle' at rest until "
-        "t = 1 s, then the out-of-plane force [0, 0, -100 cos(pi t)] mN on node 51 for t in [1, 2] s. "
+        "t = 1 s, then the out-of-plane force [0, 0, -100 cos(pi t)] mN on node 51 for t in [1, 2] s "
+        "(as printed; a large load for this rod: the apex swings about 0.18 m out of the plane). "
         "dt 1e-4 s, 2 s. No gravity, no damping.",
         {"force": "[0, 0, -100 cos(pi t)] mN", "force_interval": (1.0, 2.0),
          "rnn_errors": {"x": (3.73e-3, 1.25e-3), "y": (2e-3, 0.2e-3), "z": (8.1e-3, 1.2e-3)}},

@@ -154,20 +154,29 @@ def test_ellipse_geometry_reconciles_printed_end_orientations():
     assert p[29].tolist() == pytest.approx([0.0, -0.6, 0.0], abs=1e-9)
     assert float(p[:, 0].max() - p[:, 0].min()) == pytest.approx(0.2, rel=1e-3)
     chord = p[1] - p[0]
-    assert abs(math.degrees(math.atan2(float(chord[1]), float(chord[0])))) == pytest.approx(18.07, abs=0.2)
-    assert get_scene("ellipse").rod.length == pytest.approx(1.3365, rel=1e-4)
+    assert abs(math.degrees(math.atan2(float(chord[1]), float(chord[0])))) == pytest.approx(18.07, abs=1.5)
+    rod = get_scene("ellipse").rod
+    assert get_scene("ellipse_horizontal").rod is rod  # one rod, two boundary conditions
+    assert rod.length == pytest.approx(1.3365, rel=0.01) and rod.length < 1.3365  # chords < arcs
+    # every element starts free of axial strain (only bending and a little shear are stored)
+    for name in ("ellipse", "ellipse_horizontal"):
+        c = get_scene(name).initial_configuration()
+        q, F = c["p"], c["R"]
+        d = q[1:] - q[:-1]
+        ax = 0.5 * ((F[:-1, :, 2] * d).sum(-1) + (F[1:, :, 2] * d).sum(-1))
+        assert torch.allclose(ax, torch.full_like(ax, rod.lengths[0]), rtol=1e-10, atol=0)
     ph = get_scene("ellipse_horizontal").initial_configuration()["p"]
     ch = ph[1] - ph[0]
     assert abs(math.degrees(math.atan2(float(ch[1]), float(ch[0])))) < 1.0  # printed: identity
-    assert ph[29].tolist() == pytest.approx([0.0, -0.2, 0.0], abs=1e-9)
+    assert ph[29].tolist() == pytest.approx([0.0, -0.2, 0.0], abs=1e-4)
 
 
 def test_semicircle_geometry_and_end_frames():
     cfg = get_scene("semicircle").initial_configuration()
     p, R = cfg["p"], cfg["R"]
     r = 0.6 / math.pi
-    assert p[50].tolist() == pytest.approx([r, r, 0.0], abs=1e-12)
-    assert p[-1].tolist() == pytest.approx([2 * r, 0.0, 0.0], abs=1e-12)
+    assert p[50].tolist() == pytest.approx([r, r, 0.0], rel=1e-3)
+    assert p[-1].tolist() == pytest.approx([2 * r, 0.0, 0.0], abs=1e-4)
     rel_rot = so3_log(R[-1] @ R[0].T)  # world-frame rotation taking the first end frame to the last
     assert math.degrees(float(rel_rot.norm())) == pytest.approx(181.81, abs=2.0)
     assert float(rel_rot[:2].abs().max()) < 1e-6  # about z
@@ -256,12 +265,25 @@ def test_make_integrator_overrides_and_default_stability_check():
         sc.make_integrator(dt=1e-3)
 
 
-def test_conservative_scene_keeps_its_energy():
-    sc = get_scene("pdms_tip_magnet")
+@pytest.mark.parametrize("name", ["pdms_tip_magnet", "al_inplane"])
+def test_conservative_scene_keeps_its_energy(name):
+    sc = get_scene(name)
     integ = sc.make_integrator(stability="off")
-    _, tr = integ.simulate(sc.initial_state(integ), n_steps=400, record_every=40, record_energy=True)
+    _, tr = integ.simulate(sc.initial_state(integ), n_steps=1000, record_every=50, record_energy=True)
     E = tr.energy
-    assert float((E - E[0]).abs().max()) < 1e-3 * float(E[0].abs())
+    assert float((E - E[0]).abs().max()) < 1e-4 * float(E[0].abs())
+
+
+@pytest.mark.parametrize("name", ["al_inplane", "al_3d", "pdms_tip_magnet", "semicircle"])
+def test_open_initial_shapes_store_only_bending_energy(name):
+    from physics.elastic import elastic_energy
+
+    sc = get_scene(name)
+    cfg = sc.initial_configuration()
+    prm = sc.rod.params()
+    bending = elastic_energy(cfg["p"], cfg["R"], prm._replace(C1=torch.zeros_like(prm.C1)))
+    stretch = elastic_energy(cfg["p"], cfg["R"], prm._replace(C2=torch.zeros_like(prm.C2)))
+    assert float(bending) > 0 and float(stretch) < 1e-12 * float(bending)
 
 
 def test_magnetic_scenes_start_in_equilibrium():
@@ -273,6 +295,22 @@ def test_magnetic_scenes_start_in_equilibrium():
         assert abs(float(s0.p[-1, 1])) > 0.005  # bent by gravity and the field, not straight
         s, _ = integ.simulate(s0, n_steps=100, record_every=100)
         assert float((s.p - s0.p).abs().max()) < 1e-8
+
+
+def test_clamped_semicircle_is_an_equilibrium():
+    sc = get_scene("semicircle_heldout")  # no force before t = 1 s
+    integ = sc.make_integrator(stability="off")
+    s0 = sc.initial_state(integ)
+    s, _ = integ.simulate(s0, n_steps=200, record_every=200)
+    assert float((s.p - s0.p).abs().max()) < 1e-12
+
+
+@pytest.mark.parametrize("name", ["pdms_circular", "pdms_square_two_magnets"])
+def test_damping_is_five_percent_of_critical_in_mode_one(name):
+    rod = get_scene(name).rod
+    w1 = float(rod.natural_frequencies(n_modes=1)[0])
+    zeta = rod.damping * rod.length / (2 * w1 * float(rod.node_masses().sum()))
+    assert zeta == pytest.approx(0.05, rel=0.05) and get_scene(name).chosen["damping"] == rod.damping
 
 
 def test_scene_validation():
