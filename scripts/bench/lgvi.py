@@ -34,6 +34,7 @@ class Args:
     n_elements: int = 10
     steps_per_call: int = 4
     compile: bool = True
+    window: float | None = None
 
 
 def pdms_tip_magnet_rod(n_elements: int) -> Rod:
@@ -90,9 +91,10 @@ def main(argv=None):
     ap.add_argument("--n-elements", type=int, default=Args.n_elements)
     ap.add_argument("--steps-per-call", type=int, default=Args.steps_per_call)
     ap.add_argument("--no-compile", dest="compile", action="store_false")
+    ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.5 quick, 2 full)")
     args = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(args.threads)
-    window = 0.5 if args.quick else 2.0
+    window = args.window or (0.5 if args.quick else 2.0)
     rod = pdms_tip_magnet_rod(args.n_elements)
     n = rod.n_nodes
     out = {"problem": "pdms_tip_magnet (Table I.6)", "n_elements": rod.N, "n_nodes": n, "dt": DT, "dtype": "float64",

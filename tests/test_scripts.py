@@ -1,0 +1,35 @@
+"""Smoke runs of the scripts with tiny budgets: they run and end with one JSON line."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_script(args, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_bench_lgvi_quick(tmp_path):
+    pytest.importorskip("elastica")
+    res = run_script([str(ROOT / "scripts/bench/lgvi.py"), "--quick", "--no-compile", "--window", "0.05",
+                      "--batch", "8"], tmp_path)
+    for key in ("single_rod_us_per_step", "pyelastica_us_per_step", "single_time_ratio_vs_pyelastica",
+                "batched_node_steps_per_s", "pyelastica_node_steps_per_s", "batched_speedup_vs_pyelastica",
+                "rtf_pdms_tip_magnet", "dtype", "threads", "device", "n_nodes", "batch"):
+        assert key in res
+    assert res["single_rod_us_per_step"] > 0 and res["tip_diff_vs_pyelastica_at_0.1s_pct_L"] < 10
+
+
+def test_convergence_report_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_lgvi_convergence.py"), "--quick", "--out", "report.md"], tmp_path)
+    assert (tmp_path / "report.md").exists()
+    assert all(abs(v) < 2.0 for k, v in res["freq_err_pct"].items() if "N=20" in k)
+    assert all(1.8 < o < 2.3 for o in res["time_orders"])
