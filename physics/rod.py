@@ -323,17 +323,14 @@ class Rod:
 
     def node_masses(self) -> Tensor:
         """Lumped node masses (n,) in kg, float64."""
-        l = torch.tensor(self.lengths, dtype=torch.float64)
-        w = torch.zeros(self.n_nodes, dtype=torch.float64)
-        w[:-1] += l / 2
-        w[1:] += l / 2
-        m = self.line_mass * w
+        m = self.line_mass * self.node_weights()
         for (e, xi), mag in zip(self.magnet_weights(), self.magnets):
             m[e] += (1 - xi) * mag.mass
             m[e + 1] += xi * mag.mass
         return m
 
     def node_weights(self) -> Tensor:
+        """Length lumped at each node: half of each adjacent element (n,), float64."""
         l = torch.tensor(self.lengths, dtype=torch.float64)
         w = torch.zeros(self.n_nodes, dtype=torch.float64)
         w[:-1] += l / 2
