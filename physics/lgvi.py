@@ -185,7 +185,6 @@ class LGVI:
         free = torch.ones(n, dtype=self.dtype, device=self.device)
         free[fixed] = 0.0
         self._free = free[:, None]
-        self._has_fixed = bool(fixed)
         g = self.loads.gravity
         self._gravity = None if g is None else torch.as_tensor(g, dtype=self.dtype, device=self.device)
         if self._gravity is not None and self._gravity.shape[-1] != 3:
@@ -331,7 +330,7 @@ class LGVI:
         t = self._tensor_time(state.t)
         p, v, R, pi = state.p, state.v, state.R, state.pi
         rec = [p] if record_every else None
-        tol = max(1e3 * self.newton_tol, 1e-10 if self.dtype == torch.float64 else 1e-4)
+        tol = self._residual_limit()
         for c in range(n_steps // steps_per_call):
             good = LGVIState(state.t + c * steps_per_call * self.dt, p, v, R, pi, state.step + c * steps_per_call)
             t, p, v, R, pi, res = fn(t, p, v, R, pi)
@@ -344,13 +343,17 @@ class LGVI:
         out = LGVIState(state.t + n_steps * self.dt, p, v, R, pi, state.step + n_steps)
         return out, (torch.stack(rec, -3) if record_every else None)
 
+    def _residual_limit(self) -> float:
+        """Largest Newton residual accepted before a step counts as not converged."""
+        return max(1e3 * self.newton_tol, 1e-10 if self.dtype == torch.float64 else 1e-4)
+
     def _check(self, state: LGVIState, res: Tensor | None, label: str = ""):
         bad = ~(torch.isfinite(state.p).all(-1) & torch.isfinite(state.R).flatten(-2).all(-1))
         if bool(bad.any()):
             node = int(bad.nonzero()[0, -1])
             raise SolverError("non-finite state (the step is probably above the stability limit "
                               "or the load is too large)", step=state.step, time=state.t, node=node)
-        if res is not None and float(res.max()) > max(1e3 * self.newton_tol, 1e-10 if self.dtype == torch.float64 else 1e-4):
+        if res is not None and float(res.max()) > self._residual_limit():
             node = int((res == res.max()).nonzero()[0, -1])
             raise SolverError(f"rotation Newton iteration did not converge (residual {float(res.max()):.3e} "
                               f"after {self.newton_max_iter if self.newton_iters is None else self.newton_iters} iterations)",

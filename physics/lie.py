@@ -19,7 +19,7 @@ from torch import Tensor
 __all__ = [
     "hat", "vee", "skew_vee", "so3_exp", "so3_log", "cay", "cay_inv", "dcay_inv",
     "quat_to_matrix", "matrix_to_quat", "quat_normalize", "rot_x", "rot_y", "rot_z",
-    "mm3", "mtm3", "mv3", "mtv3",
+    "mtm3", "mv3", "mtv3",
 ]
 
 
@@ -184,13 +184,6 @@ def rot_z(theta, dtype=None, device=None) -> Tensor:
 
 # Small-matrix products: eager uses batched matmul (fast for large batches); under torch.compile
 # they are written as broadcasts, which fuse, where a matmul of 3x3 blocks is an unfused call.
-def mm3(A: Tensor, B: Tensor) -> Tensor:
-    """A @ B for (..., 3, 3)."""
-    if torch.compiler.is_compiling():
-        return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
-    return A @ B
-
-
 def mtm3(A: Tensor, B: Tensor) -> Tensor:
     """A^T @ B for (..., 3, 3)."""
     if torch.compiler.is_compiling():
