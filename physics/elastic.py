@@ -25,7 +25,7 @@ from .errors import SolverError
 from .lie import mtm3, mtv3, mv3
 from .rod import RodParams
 
-__all__ = ["elastic_energy", "internal_loads", "relative_cayley", "skew_and_trace"]
+__all__ = ["elastic_energy", "internal_loads", "node_frame_strains", "relative_cayley", "skew_and_trace"]
 
 
 _SKEW_P = [7, 2, 3]  # flat indices of R21, R02, R10
@@ -55,7 +55,8 @@ def relative_cayley(R: Tensor, check: bool = True) -> Tensor:
     return 2.0 * s / den[..., None]
 
 
-def _strains(p: Tensor, R: Tensor, prm: RodParams):
+def node_frame_strains(p: Tensor, R: Tensor, prm: RodParams):
+    """Per element: ``R_a^T d / l``, ``R_b^T d / l`` (..., N, 3) and ``E3``."""
     d = (p[..., 1:, :] - p[..., :-1, :]) / prm.l[..., None]
     e3 = torch.zeros(3, dtype=p.dtype, device=p.device)
     e3[2] = 1.0
@@ -64,7 +65,7 @@ def _strains(p: Tensor, R: Tensor, prm: RodParams):
 
 def elastic_energy(p: Tensor, R: Tensor, prm: RodParams) -> Tensor:
     """Total elastic energy (...,) in J."""
-    Ga, Gb, e3 = _strains(p, R, prm)
+    Ga, Gb, e3 = node_frame_strains(p, R, prm)
     l = prm.l
     sh = 0.5 * (Ga + Gb) - e3
     shear = 0.5 * l * (sh * prm.C1 * sh).sum(-1)
@@ -78,7 +79,7 @@ def internal_loads(p: Tensor, R: Tensor, prm: RodParams, psi: Tensor | None = No
 
     ``psi`` (the relative Cayley coordinates) may be passed when already computed.
     """
-    Ga, Gb, e3 = _strains(p, R, prm)
+    Ga, Gb, e3 = node_frame_strains(p, R, prm)
     l = prm.l[..., None]
     n = prm.C1 * (0.5 * (Ga + Gb) - e3)  # internal force in the averaged body frame
     n_w = 0.5 * mv3(R[..., :-1, :, :] + R[..., 1:, :, :], n)

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from physics import LGVI, CircularSection, Loads, Material, Rod
-from physics.elastic import _strains, relative_cayley
+from physics.elastic import node_frame_strains, relative_cayley
 from physics.modal import frequencies
 
 
@@ -29,7 +29,7 @@ class Args:
 
 def energy_two_node_shear(p, R, prm):
     """The printed (I.6): shear/extension evaluated separately in both node frames."""
-    Ga, Gb, e3 = _strains(p, R, prm)
+    Ga, Gb, e3 = node_frame_strains(p, R, prm)
     l = prm.l
     sa, sb = Ga - e3, Gb - e3
     shear = 0.25 * l * ((sa * prm.C1 * sa).sum(-1) + (sb * prm.C1 * sb).sum(-1))
