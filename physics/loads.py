@@ -1,6 +1,7 @@
 """External loads on a discrete rod: gravity, node wrenches, and the magnet/field hook.
 
-The field hook. ``Loads.field`` is any object that either
+The field hook. ``Loads.field`` is any object that either (every
+:class:`physics.magnetics.FieldModel` does both)
 
 * has ``wrench(t, positions, moments) -> (force, torque)`` (world frame, each (..., K, 3)), or
 * is callable as ``field(t, positions) -> B`` or ``-> (B, dB)`` with ``B`` (..., K, 3) in tesla and
@@ -20,6 +21,7 @@ import torch
 from torch import Tensor
 
 from .lie import cay
+from .magnetics.base import UniformField
 from .rod import RodParams
 
 __all__ = ["Loads", "UniformField", "magnet_poses", "magnet_node_loads"]
@@ -46,18 +48,6 @@ class Loads:
 
     def evaluate_torque(self, t: float):
         return _value(self.torque, t)
-
-
-class UniformField:
-    """A spatially uniform field ``B(t)``: a (3,) tensor/sequence or a function of time."""
-
-    def __init__(self, B):
-        self.B = B
-
-    def __call__(self, t: float, positions: Tensor) -> Tensor:
-        B = self.B(t) if callable(self.B) else self.B
-        B = torch.as_tensor(B, dtype=positions.dtype, device=positions.device)
-        return B.expand(positions.shape)
 
 
 def magnet_poses(p: Tensor, R: Tensor, psi: Tensor, prm: RodParams):

@@ -1,0 +1,117 @@
+"""The contract every field model follows, and the adapters that plug it into the rod solvers.
+
+A field model implements ``field_and_gradient(points) -> (B, dB)`` for field points (..., P, 3)
+(B (..., P, 3) in T, ``dB[..., i, j] = dB_i/dx_j`` (..., P, 3, 3)) and, where cheaper, ``field``.
+From these the base class derives ``force_torque(points, moments)`` on dipoles and the solvers'
+field hook (see :mod:`physics.loads`): ``model(t, positions) -> (B, dB)`` and
+``model.wrench(t, positions, moments) -> (force, torque)``; a static model ignores ``t``.
+Models add by superposition: ``a + b`` is a :class:`Superposition`.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .dipole import dipole_torque, force_from_gradient
+
+__all__ = ["FieldModel", "Superposition", "TimeVarying", "UniformField"]
+
+
+def check_points(points: Tensor, name: str = "points") -> Tensor:
+    if not isinstance(points, Tensor):
+        raise TypeError(f"{name} must be a tensor (..., 3), got {type(points).__name__}")
+    if points.shape[-1:] != (3,):
+        raise ValueError(f"{name} must have shape (..., 3), got {tuple(points.shape)}")
+    if not bool(torch.isfinite(points).all()):
+        raise ValueError(f"{name} must be finite")
+    return points
+
+
+class FieldModel:
+    """Base class of static field models (subclasses implement ``field_and_gradient``)."""
+
+    def field_and_gradient(self, points: Tensor) -> tuple[Tensor, Tensor]:  # pragma: no cover
+        raise NotImplementedError
+
+    def field(self, points: Tensor) -> Tensor:
+        return self.field_and_gradient(points)[0]
+
+    def force_torque(self, points: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
+        """Force ``grad(m . B)`` and torque ``m x B`` (each (..., P, 3)) on dipoles ``moments`` at ``points``."""
+        B, dB = self.field_and_gradient(points)
+        return force_from_gradient(moments, dB), dipole_torque(moments, B)
+
+    def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
+        """Solver hook: :meth:`force_torque` at time ``t`` (ignored by static models)."""
+        return self.force_torque(positions, moments)
+
+    def __call__(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
+        return self.field_and_gradient(positions)
+
+    def __add__(self, other: "FieldModel") -> "Superposition":
+        return Superposition([self, other])
+
+
+class Superposition(FieldModel):
+    """Sum of field models."""
+
+    def __init__(self, models):
+        flat = []
+        for mdl in models:
+            flat.extend(mdl.models if isinstance(mdl, Superposition) else [mdl])
+        if not flat:
+            raise ValueError("models must not be empty")
+        self.models = flat
+
+    def field_and_gradient(self, points):
+        outs = [mdl.field_and_gradient(points) for mdl in self.models]
+        return sum(o[0] for o in outs), sum(o[1] for o in outs)
+
+    def field(self, points):
+        return sum(mdl.field(points) for mdl in self.models)
+
+
+class TimeVarying:
+    """A time-dependent field for the solvers' hook: ``make(t) -> FieldModel`` evaluated at each call
+    (e.g. a magnet on a moving pose, coil currents following a schedule)."""
+
+    def __init__(self, make: Callable[[Tensor], FieldModel]):
+        self.make = make
+
+    def __call__(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
+        return self.make(t).field_and_gradient(positions)
+
+    def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
+        return self.make(t).force_torque(positions, moments)
+
+
+class UniformField(FieldModel):
+    """A spatially uniform field ``B`` (3,) in T, or ``B(t)`` a function of time (e.g. the ideal field at
+    the centre of Helmholtz coils). As a solver hook it returns ``B`` alone: no gradient, no force."""
+
+    def __init__(self, B):
+        if not callable(B):
+            B = torch.as_tensor(B)
+            if B.shape[-1:] != (3,) or not bool(torch.isfinite(B).all()):
+                raise ValueError(f"B must be a finite (..., 3) field in tesla, got shape {tuple(B.shape)}")
+        self.B = B
+
+    def _at(self, t, points: Tensor) -> Tensor:
+        B = self.B(t) if callable(self.B) else self.B
+        return torch.as_tensor(B, dtype=points.dtype, device=points.device).expand(points.shape)
+
+    def field_and_gradient(self, points):
+        B = self._at(None, check_points(points))
+        return B, torch.zeros(*B.shape, 3, dtype=B.dtype, device=B.device)
+
+    def field(self, points):
+        return self._at(None, check_points(points))
+
+    def __call__(self, t, positions: Tensor) -> Tensor:
+        return self._at(t, positions)
+
+    def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
+        torque = dipole_torque(moments, self._at(t, positions))
+        return torch.zeros_like(torque), torque
