@@ -17,12 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
+
+from .io import atomic_write
 
 __all__ = ["main", "build_parser", "run_scene"]
 
@@ -140,22 +140,6 @@ def run_scene(scene, duration: float | None = None, dtype: str = "float64", reco
     return summary
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Call ``write(file)`` on a temporary file next to ``path``, then rename it into place."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _plots(scene, summary: dict, out: Path) -> list[Path]:
     import matplotlib
 
@@ -177,7 +161,7 @@ def _plots(scene, summary: dict, out: Path) -> list[Path]:
     axes[0].set_title(f"{scene.name}: positions of the nodes of interest")
     axes[-1].set_xlabel("t (s)")
     fig.tight_layout()
-    _atomic_write(paths[0], lambda f: fig.savefig(f, format="png", dpi=110))
+    atomic_write(paths[0], lambda f: fig.savefig(f, format="png", dpi=110))
     plt.close(fig)
 
     span = p.reshape(-1, 3).max(0) - p.reshape(-1, 3).min(0)
@@ -200,7 +184,7 @@ def _plots(scene, summary: dict, out: Path) -> list[Path]:
     axes[0].legend(fontsize=7, loc="best")
     fig.suptitle(f"{scene.name}: shape snapshots (squares and dotted path: {scene.node_labels[0]})")
     fig.tight_layout()
-    _atomic_write(paths[1], lambda f: fig.savefig(f, format="png", dpi=110))
+    atomic_write(paths[1], lambda f: fig.savefig(f, format="png", dpi=110))
     plt.close(fig)
     return paths
 
@@ -246,7 +230,7 @@ def _cmd_simulate(args) -> int:
     record = {k: v for k, v in summary.items() if not k.startswith("_")}
     record["files"] = [p.name for p in files]
     js = out / "summary.json"
-    _atomic_write(js, lambda f: f.write(json.dumps(record, indent=2).encode()))
+    atomic_write(js, lambda f: f.write(json.dumps(record, indent=2).encode()))
     print("wrote " + ", ".join(str(p) for p in [*files, js]))
     return 0
 

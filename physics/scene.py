@@ -23,10 +23,10 @@ from torch import Tensor
 from .lgvi import LGVI, Boundary, LGVIState
 from .loads import Loads
 from .rod import Rod
+from .magnetics.dipole import MU0, moment_from_remanence
 
 __all__ = ["Scene", "table_to_si", "MU0", "G_EARTH", "dipole_moment"]
 
-MU0 = 4e-7 * math.pi  # vacuum permeability (T m / A), the value the thesis's m = Br V / mu0 uses
 G_EARTH = 9.81  # m/s^2
 
 # mg-mm-s -> SI factors
@@ -58,7 +58,7 @@ def table_to_si(*, table: str, n_elements: int, M: float, J_d, C1, C2, F_c, dt: 
 
 def dipole_moment(Br: float, volume: float) -> float:
     """Dipole moment magnitude m = Br V / mu0 (A m^2) of a magnet of remanence Br (T), volume V (m^3)."""
-    return Br * volume / MU0
+    return moment_from_remanence(Br, volume)
 
 
 InitialBuilder = Callable[[Rod], Mapping[str, Tensor]]

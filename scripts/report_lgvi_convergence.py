@@ -9,13 +9,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from cmlearn.io import write_text_atomic
 from physics import LGVI, CircularSection, Loads, Material, Rod
 from physics.elastic import node_frame_strains, relative_cayley
 from physics.modal import frequencies
@@ -62,14 +61,6 @@ def time_order(quick: bool):
     return dt0, errs, [math.log2(errs[i] / errs[i + 1]) for i in range(2)]
 
 
-def write_atomic(path: Path, text: str):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
@@ -96,7 +87,7 @@ def main(argv=None):
               f"tip errors {', '.join(f'{e:.3g}' for e in errs)} m at dt0, dt0/2, dt0/4 against dt0/16; "
               f"observed orders {', '.join(f'{o:.2f}' for o in orders)}.", "",
               "Made by `python scripts/report_lgvi_convergence.py`."]
-    write_atomic(Path(args.out), "\n".join(lines) + "\n")
+    write_text_atomic(Path(args.out), "\n".join(lines) + "\n")
     print(f"time order: {orders}")
     print(json.dumps({"freq_err_pct": {k: v[0] for k, v in table.items()},
                       "freq_err_pct_thesis_I6": {k: v[1] for k, v in table.items()}, "time_orders": orders}))
