@@ -33,3 +33,21 @@ def test_convergence_report_quick(tmp_path):
     assert (tmp_path / "report.md").exists()
     assert all(abs(v) < 2.0 for k, v in res["freq_err_pct"].items() if "N=20" in k)
     assert all(1.8 < o < 2.3 for o in res["time_orders"])
+
+
+def test_bench_magnetics_quick(tmp_path):
+    pytest.importorskip("magpylib")
+    res = run_script([str(ROOT / "scripts/bench/magnetics.py"), "--quick", "--points", "300"], tmp_path)
+    for key in ("field_points_per_s", "magpylib_cuboid_points_per_s", "magpylib_dipoles_points_per_s",
+                "speedup_vs_magpylib_dipoles", "force_points_per_s", "cube_dipole_rel_err_75mm", "n_dipoles",
+                "n_points", "dtype", "threads"):
+        assert key in res
+    assert res["cube_dipole_rel_err_75mm"] < 1e-4 and res["max_rel_diff_vs_magpylib_dipoles"] < 1e-9
+
+
+def test_magnet_convergence_report_quick(tmp_path):
+    pytest.importorskip("magpylib")
+    res = run_script([str(ROOT / "scripts/report_magnet_convergence.py"), "--quick", "--out", "conv.md"], tmp_path)
+    assert (tmp_path / "conv.md").exists()
+    errs = res["field_err_75mm"]
+    assert errs["1728"] < 1e-4 < errs["8"]

@@ -52,13 +52,20 @@ def moment_from_remanence(Br, volume):
 
 
 def check_distances(r2: Tensor, min_distance: float, name: str = "points") -> None:
-    """Raise ``ValueError`` if any squared distance is not above ``min_distance^2`` (or non-finite)."""
+    """Raise ``ValueError`` if any squared distance is not above ``min_distance^2`` (or is NaN).
+
+    One reduction over ``r2``; the slow search for the offending index runs only on failure."""
+    r2 = r2.detach()
+    if r2.numel() == 0:
+        return
+    lo = r2.amin()
+    if bool(lo > min_distance * min_distance):
+        return
     bad = ~(r2 > min_distance * min_distance)
-    if bool(bad.any()):
-        idx = tuple(int(i) for i in bad.nonzero()[0])
-        raise ValueError(f"{name}: field point at distance {float(r2[idx].clamp_min(0).sqrt()):.3e} m "
-                         f"(<= min_distance {min_distance:.3e} m) from a dipole at index {idx}; the point-"
-                         "dipole field is singular there (move the point or pass softening=...)")
+    idx = tuple(int(i) for i in bad.nonzero()[0])
+    raise ValueError(f"{name}: field point at distance {float(r2[idx].clamp_min(0).sqrt()):.3e} m "
+                     f"(<= min_distance {min_distance:.3e} m) from a dipole at index {idx}; the point-"
+                     "dipole field is singular there (move the point or pass softening=...)")
 
 
 def _r2(d: Tensor, softening: float, min_distance: float) -> Tensor:
