@@ -1,0 +1,117 @@
+"""Generate surrogate training data with the LGVI and store it compactly and atomically.
+
+A dataset file (``torch.save``) holds, for V variants of a task's scene sampled every ``delta``:
+
+* ``positions`` (V, T, n_tracked, 3) float32: the tracked nodes (anchors + modelled nodes);
+* ``wrench`` (V, T - 1, n_wrench, 3) float32: the world force on each input-wrench node at the
+  middle of every interval ``[t_k, t_k + delta)`` (exact for forces switching on the grid);
+* ``meta``: task, scene, seed, variant count, delta, dt, node lists, variant descriptions, the
+  library version and a sha256 ``data_hash`` of the arrays.
+
+Files are cached under ``data/`` (ignored by git) and regenerated from the physics when missing.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import time
+from pathlib import Path
+
+import torch
+
+import physics
+from cmlearn.io import atomic_write
+
+from .tasks import SurrogateTask, get_task
+
+__all__ = ["simulate_task", "generate_dataset", "load_dataset", "data_hash", "scene_rollout"]
+
+
+def data_hash(*tensors: torch.Tensor) -> str:
+    h = hashlib.sha256()
+    for t in tensors:
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _midpoint_wrench(force, task: SurrogateTask, times, n_variants: int):
+    """(V, T-1, n_wrench, 3) force on the wrench nodes at the interval midpoints."""
+    W = torch.zeros(n_variants, len(times) - 1, len(task.wrench_nodes), 3, dtype=torch.float64)
+    if force is None or not task.wrench_nodes:
+        return W
+    idx = list(task.wrench_nodes)
+    for k in range(len(times) - 1):
+        f = force(torch.tensor(0.5 * (times[k] + times[k + 1]), dtype=torch.float64))
+        if f is not None:
+            W[:, k] = f[..., idx, :]
+    return W
+
+
+def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", duration=None):
+    """Run the LGVI on ``scene`` (or a batch of initial shapes / a batched force) and return the
+    tracked-node positions (..., T, n_tracked, 3) every ``delta``, the wrench inputs and the wall time."""
+    from dataclasses import replace
+    if force != "scene":
+        scene = replace(scene, loads=replace(scene.loads, force=force))
+    sim = scene.make_integrator()
+    cfg = scene.initial_configuration()
+    state = sim.initial_state(p=cfg["p"] if p0 is None else p0, R=cfg.get("R") if R0 is None else R0)
+    every = task.record_every(scene)
+    n_frames = int(round((duration or scene.duration) / task.delta)) + 1
+    t0 = time.perf_counter()
+    _, traj = sim.simulate(state, n_steps=(n_frames - 1) * every, record_every=every)
+    wall = time.perf_counter() - t0
+    pos = traj.p[..., list(task.tracked), :]
+    times = [k * task.delta for k in range(n_frames)]
+    n_var = pos.shape[0] if pos.dim() == 4 else 1
+    W = _midpoint_wrench(scene.loads.force, task, times, n_var)
+    if pos.dim() == 3:
+        W = W[0]
+    return pos, W, wall
+
+
+def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, duration: float | None = None):
+    """Simulate ``n_variants`` of the task's scene (variant 0 the printed scene) as one batch, for the
+    scene's duration or a shorter ``duration`` (tests)."""
+    from dataclasses import replace
+    task = get_task(task) if isinstance(task, str) else task
+    scene = task.base_scene()
+    if duration:
+        scene = replace(scene, duration=duration)
+    var = task.variants(scene, n_variants, seed)
+    force = var["force"] if var["force"] is not None else "scene"
+    pos, W, wall = scene_rollout(task, scene, var["p"], var.get("R"), force=force)
+    return pos, W, var["info"], wall
+
+
+def generate_dataset(task: SurrogateTask | str, n_variants: int, seed: int, out: str | Path,
+                     duration: float | None = None) -> dict:
+    task = get_task(task) if isinstance(task, str) else task
+    pos, W, info, wall = simulate_task(task, n_variants, seed, duration)
+    positions, wrench = pos.float(), W.float()
+    scene = task.base_scene()
+    meta = {"task": task.name, "scene": task.scene, "seed": seed, "duration": duration or scene.duration, "n_variants": n_variants, "delta": task.delta,
+            "dt": scene.dt, "tracked": list(task.tracked), "modeled": list(task.modeled),
+            "anchors": list(task.anchors), "wrench_nodes": list(task.wrench_nodes), "rod_length": scene.rod.length,
+            "variants": info, "physics_version": physics.__version__, "lgvi_wall_s": wall,
+            "data_hash": data_hash(positions, wrench)}
+    buf = io.BytesIO()
+    torch.save({"positions": positions, "wrench": wrench, "meta": meta}, buf)
+    atomic_write(out, lambda f: f.write(buf.getvalue()))
+    return meta
+
+
+def load_dataset(path: str | Path, task: str | None = None) -> dict:
+    """Load and validate a dataset file (clear errors for a corrupt file, a wrong task or a bad hash)."""
+    path = Path(path)
+    try:
+        d = torch.load(path, weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unpickling failure means a corrupt file
+        raise ValueError(f"{path}: not a readable cmlearn dataset ({type(e).__name__}: {e})") from None
+    if not isinstance(d, dict) or not {"positions", "wrench", "meta"} <= set(d):
+        raise ValueError(f"{path}: not a cmlearn dataset (missing positions/wrench/meta)")
+    if task is not None and d["meta"].get("task") != task:
+        raise ValueError(f"{path}: dataset is for task {d['meta'].get('task')!r}, not {task!r}")
+    if data_hash(d["positions"], d["wrench"]) != d["meta"]["data_hash"]:
+        raise ValueError(f"{path}: data hash mismatch (file modified or corrupt)")
+    return d

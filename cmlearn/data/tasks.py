@@ -1,0 +1,246 @@
+"""Surrogate tasks: which scene generates the data, which nodes a surrogate models, and how the
+training set is widened beyond the single printed scene.
+
+A task names a base scene (Paper II Simulations I-III and the magnetic rod), the surrogate's time
+step ``delta`` (a multiple of the scene's LGVI step), the modelled nodes (a sparse chain along the
+rod that contains the nodes of interest), the anchors (clamped nodes whose positions are known),
+the nodes that carry an input wrench, and a seeded generator of training variants:
+
+* Simulation I (``ellipse``): loops of the same rod bent into ellipses of random aspect ratio
+  (log-uniform in [1/4, 4]) released from rest; aspect ratios within 25 % of the held-out horizontal
+  ellipse (1/3) are excluded so that it stays unseen.
+* Simulation II (``square_tracking``): the tip driven through random minimum-jerk waypoint paths
+  (the square's feed-forward law, random waypoints within +-7 cm). Held out: a circle and a
+  figure eight at the same speed, never drawn as training paths.
+* Simulation III (``semicircle``): random force pulses on the middle node, direction uniform on the
+  sphere (so out-of-plane motion is seen), 0-100 mN, constant or cos(pi t) shaped, on/off on the
+  surrogate's time grid. The printed held-out load is not one of them.
+
+Variant 0 is always the printed scene itself: its first 60 % trains and its last 40 % is the
+"seen scene, unseen samples" evaluation of the thesis.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from physics.scene import Scene
+from physics.scenes_paper2 import SquareTipForce, _min_jerk
+from physics.shapes import ellipse_loop
+from physics.scenes import get_scene
+
+__all__ = ["SurrogateTask", "TASKS", "get_task", "BatchedNodeForce", "TipPathForce"]
+
+
+class BatchedNodeForce:
+    """World node forces (V, n, 3) for V variants: ``fns[v](t) -> (n, 3) or None`` stacked."""
+
+    def __init__(self, fns, n_nodes: int):
+        self.fns, self.n_nodes = list(fns), n_nodes
+
+    def __call__(self, t):
+        out = torch.zeros(len(self.fns), self.n_nodes, 3, dtype=torch.float64)
+        for v, fn in enumerate(self.fns):
+            f = fn(t)
+            if f is not None:
+                out[v] = f
+        return out
+
+
+class TipPathForce(SquareTipForce):
+    """Feed-forward tip force ``F = k x_d + m x_d''`` along any lateral path: minimum-jerk segments
+    through ``waypoints`` (list of (x, y)) with ``durations``, or a closed ``curve(t) -> ((x, y), (ax, ay))``."""
+
+    def __init__(self, rod, waypoints=None, durations=None, curve: Callable | None = None):
+        super().__init__(rod, 0.0, (1.0,) * 6)
+        self.curve = curve
+        if curve is None:
+            self.waypoints = [tuple(map(float, w)) for w in waypoints]
+            self.durations = tuple(float(d) for d in durations)
+
+    def desired(self, t):
+        return self.curve(float(t)) if self.curve is not None else super().desired(t)
+
+
+def _pulse_fn(n_nodes, node, vector, t0, t1, shape):
+    vec = torch.as_tensor(vector, dtype=torch.float64)
+
+    def fn(t):
+        t = float(t)
+        if not (t0 <= t < t1):
+            return None
+        f = torch.zeros(n_nodes, 3, dtype=torch.float64)
+        f[node] = vec * (math.cos(math.pi * t) if shape == "cos_pi_t" else 1.0)
+        return f
+    return fn
+
+
+@dataclass(frozen=True)
+class SurrogateTask:
+    """See the module docstring. ``variants(n, seed)`` returns ``{"p": (V,n,3), "R": ..., "force": fn}``
+    for V = n variants (the first the printed scene); ``heldout`` names the held-out scenes."""
+
+    name: str
+    scene: str
+    delta: float
+    modeled: tuple[int, ...]
+    anchors: tuple[int, ...]
+    wrench_nodes: tuple[int, ...] = ()
+    heldout: tuple[str, ...] = ()
+    variants: Callable[[Scene, int, int], dict] | None = None
+    description: str = ""
+    extra_scenes: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not (self.delta > 0 and math.isfinite(self.delta)):
+            raise ValueError(f"delta must be > 0 seconds, got {self.delta}")
+        if sorted(set(self.modeled)) != list(self.modeled):
+            raise ValueError("modeled nodes must be strictly increasing")
+        if set(self.modeled) & set(self.anchors):
+            raise ValueError("a node cannot be both modeled and an anchor")
+
+    def base_scene(self) -> Scene:
+        return get_scene(self.scene)
+
+    def scene_by_name(self, name: str) -> Scene:
+        if name in self.extra_scenes:
+            return self.extra_scenes[name]()
+        return get_scene(name)
+
+    @property
+    def tracked(self) -> tuple[int, ...]:
+        """All nodes the surrogate sees: anchors and modelled nodes, in order along the rod."""
+        return tuple(sorted(set(self.modeled) | set(self.anchors)))
+
+    def record_every(self, scene: Scene) -> int:
+        k = self.delta / scene.dt
+        if abs(k - round(k)) > 1e-9:
+            raise ValueError(f"delta {self.delta} must be a multiple of the scene's dt {scene.dt}")
+        return int(round(k))
+
+
+# ------------------------------------------------------------------------------ Simulation I
+_HELDOUT_ASPECT = 0.2 / 0.6
+
+
+def _ellipse_variants(scene: Scene, n: int, seed: int) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    rod = scene.rod
+    cfg = scene.initial_configuration()
+    ps, Rs, aspects = [cfg["p"]], [cfg["R"]], [0.6 / 0.2]
+    while len(ps) < n:
+        aspect = math.exp((torch.rand((), generator=g).item() * 2 - 1) * math.log(4.0))  # h / w
+        if abs(math.log(aspect / _HELDOUT_ASPECT)) < math.log(1.25):
+            continue
+        p, R, _ = ellipse_loop(rod.N, 1.0, aspect, element_length=rod.lengths[0])
+        ps.append(p)
+        Rs.append(R)
+        aspects.append(aspect)
+    return {"p": torch.stack(ps), "R": torch.stack(Rs), "force": None, "info": {"aspect_h_over_w": aspects}}
+
+
+# ------------------------------------------------------------------------------ Simulation II
+def _square_variants(scene: Scene, n: int, seed: int) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    rod = scene.rod
+    fns, info = [scene.loads.force], [{"path": "square (printed scene)"}]
+    while len(fns) < n:
+        k = int(torch.randint(4, 9, (), generator=g))
+        pts = [(0.0, 0.0)] + [tuple((torch.rand(2, generator=g) * 0.14 - 0.07).tolist()) for _ in range(k)]
+        pts.append((0.0, 0.0))
+        dur = [2.0 + 2.0 * float(torch.rand((), generator=g)) for _ in range(len(pts) - 1)]
+        scale = 16.0 / sum(dur)  # the printed 16 s, whatever duration a (test) scene runs for
+        dur = [d * scale for d in dur]
+        fns.append(TipPathForce(rod, pts, dur))
+        info.append({"waypoints": pts, "durations": dur})
+    cfg = scene.initial_configuration()
+    return {"p": cfg["p"].expand(n, -1, -1), "R": None, "force": BatchedNodeForce(fns, rod.n_nodes),
+            "info": info}
+
+
+def _closed_curve(kind: str, radius: float = 0.05, period: float = 16.0):
+    w = 2 * math.pi / period
+
+    def ramp(t):  # minimum-jerk fade-in/out over 2 s keeps the start and end at rest
+        s_in, dd_in = _min_jerk(t / 2.0)
+        s_out, dd_out = _min_jerk((period - t) / 2.0)
+        return s_in * s_out
+
+    def curve(t):
+        def pos(tt):
+            a = ramp(tt)
+            if kind == "circle":
+                return a * radius * math.sin(w * tt), a * radius * (1 - math.cos(w * tt))
+            return a * radius * math.sin(w * tt), a * radius * math.sin(2 * w * tt)
+        h = 1e-3
+        (x0, y0), (xp, yp), (xm, ym) = pos(t), pos(t + h), pos(t - h)
+        return (x0, y0), ((xp - 2 * x0 + xm) / h**2, (yp - 2 * y0 + ym) / h**2)
+    return curve
+
+
+def tracking_heldout_scene(kind: str) -> Scene:
+    from dataclasses import replace
+
+    from physics.loads import Loads
+    base = get_scene("square_tracking")
+    force = TipPathForce(base.rod, curve=_closed_curve(kind))
+    return replace(base, name=f"square_tracking_{kind}", loads=Loads(force=force),
+                   title=f"Paper II sim. II held-out: the tip driven around a {kind} (5 cm) in 16 s",
+                   description=f"Held-out force profile for Simulation II: the square's feed-forward law along a "
+                               f"{kind} of radius 5 cm over 16 s with 2 s minimum-jerk fade-in/out; never a "
+                               "training path.")
+
+
+# ------------------------------------------------------------------------------ Simulation III
+def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    rod = scene.rod
+    node = scene.nodes_of_interest[0]
+    fns, info = [scene.loads.force], [{"pulse": "printed: 20 mN along -y for 0.5 s"}]
+    steps = int(round(scene.duration / delta))
+    while len(fns) < n:
+        d = torch.randn(3, generator=g, dtype=torch.float64)
+        d = d / d.norm()
+        amp = 0.1 * float(torch.rand((), generator=g))
+        i0 = int(torch.randint(0, steps // 2, (), generator=g))
+        i1 = int(torch.randint(min(i0 + 10, steps), steps + 1, (), generator=g))
+        shape = "cos_pi_t" if float(torch.rand((), generator=g)) < 0.5 else "constant"
+        fns.append(_pulse_fn(rod.n_nodes, node, amp * d, i0 * delta, i1 * delta, shape))
+        info.append({"direction": d.tolist(), "amplitude": amp, "t0": i0 * delta, "t1": i1 * delta, "shape": shape})
+    cfg = scene.initial_configuration()
+    return {"p": cfg["p"].expand(n, -1, -1), "R": cfg["R"].expand(n, -1, -1, -1),
+            "force": BatchedNodeForce(fns, rod.n_nodes), "info": info}
+
+
+TASKS = {
+    "ellipse": SurrogateTask(
+        name="ellipse", scene="ellipse", delta=0.005,
+        modeled=tuple(range(1, 58, 2)), anchors=(0, 58), heldout=("ellipse_horizontal",),
+        variants=_ellipse_variants,
+        description="Simulation I: 29 modelled nodes (every other node, including node 30 of 59), both "
+                    "clamped ends as anchors, 5 ms surrogate step."),
+    "square_tracking": SurrogateTask(
+        name="square_tracking", scene="square_tracking", delta=0.01,
+        modeled=tuple(range(1, 9)), anchors=(0,), wrench_nodes=(8,),
+        heldout=("square_tracking_circle", "square_tracking_figure8"), variants=_square_variants,
+        extra_scenes={"square_tracking_circle": lambda: tracking_heldout_scene("circle"),
+                      "square_tracking_figure8": lambda: tracking_heldout_scene("figure8")},
+        description="Simulation II: all 8 free nodes modelled, the clamped base as anchor, the tip force as "
+                    "input wrench, 10 ms surrogate step."),
+    "semicircle": SurrogateTask(
+        name="semicircle", scene="semicircle", delta=0.01,
+        modeled=tuple(sorted(set(range(5, 100, 5)) | {14})), anchors=(0, 100), wrench_nodes=(50,),
+        heldout=("semicircle_heldout",), variants=_semicircle_variants,
+        description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
+                    "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
+}
+
+
+def get_task(name: str) -> SurrogateTask:
+    try:
+        return TASKS[name]
+    except KeyError:
+        raise KeyError(f"unknown surrogate task {name!r}; valid: {sorted(TASKS)}") from None

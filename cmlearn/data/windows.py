@@ -1,0 +1,51 @@
+"""Training windows: (history of eta + 1 frames, the next H frames, the node forces over them)."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+
+__all__ = ["RolloutWindows", "node_wrench", "split_ranges"]
+
+
+def node_wrench(wrench: Tensor, wrench_nodes, modeled) -> Tensor:
+    """Scatter the stored forces (..., T-1, n_wrench, 3) onto the modelled nodes (..., T-1, K, 3)."""
+    out = torch.zeros(*wrench.shape[:-2], len(modeled), 3, dtype=wrench.dtype)
+    slot = {n: i for i, n in enumerate(modeled)}
+    for j, n in enumerate(wrench_nodes):
+        if n not in slot:
+            raise ValueError(f"wrench node {n} is not a modelled node")
+        out[..., slot[n], :] = wrench[..., j, :]
+    return out
+
+
+def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, val_variants: int = 1):
+    """Frame ranges per split: variant 0 (the printed scene) trains on its first ``train_fraction`` and
+    evaluates on the rest; the last ``val_variants`` variants validate; all others train in full."""
+    cut = int(round(train_fraction * (n_frames - 1)))
+    train = [(0, 0, cut)] + [(v, 0, n_frames - 1) for v in range(1, n_variants - val_variants)]
+    val = [(v, 0, n_frames - 1) for v in range(max(1, n_variants - val_variants), n_variants)]
+    test = [(0, cut, n_frames - 1)]
+    return {"train": train, "val": val or test, "test": test}
+
+
+class RolloutWindows(Dataset):
+    """Every window start inside the given ``ranges`` [(variant, first_frame, last_frame)]."""
+
+    def __init__(self, positions: Tensor, wrench: Tensor, ranges, eta: int, horizon: int):
+        self.positions, self.wrench = positions, wrench
+        self.W, self.H = eta + 1, horizon
+        self.index = []
+        for v, a, b in ranges:
+            for t in range(a + self.W - 1, b - horizon + 1):  # t = last history frame
+                self.index.append((v, t))
+        if not self.index:
+            raise ValueError(f"no window of {self.W} + {horizon} frames fits the ranges {ranges}")
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i):
+        v, t = self.index[i]
+        p = self.positions[v]
+        return p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H]

@@ -1,0 +1,136 @@
+"""Distributed LSTM node surrogate (Paper II, Figure II.2), batched over all modelled nodes.
+
+Each modelled node ``k`` sees a window of its own and its two neighbours' positions over the last
+``eta + 1`` surrogate steps (Input Layer I) and the world force on it (Input Layer II):
+
+* Input I, per frame: ``[p_left - p_k, p_right - p_k] / L`` and the node's own step
+  ``(p_k(tau) - p_k(tau - 1)) / v_scale`` (9 features), through an LSTM;
+* Input II: the node force ``/ f_scale`` through two dense layers;
+* the LSTM's last output, the force features and a learned node embedding are concatenated and a
+  dense head outputs the node's normalised second difference ``a_k``; the next position is
+  ``p_k(t+1) = 2 p_k(t) - p_k(t-1) + a_k * a_scale_k`` (a Stormer-Verlet-like update, so a zero
+  output continues the current motion).
+
+The LSTM and the dense layers are shared by all nodes (each node runs its own instance over its own
+history; the node embedding lets the head specialise), so every surrogate step is one fused LSTM
+call over ``batch x nodes`` sequences, and the nodes feed each other's predictions at the next
+step. Anchors (clamped nodes) are known inputs. A free end has no right neighbour: its offset is zero.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["NodeLSTMConfig", "NodeLSTMSurrogate"]
+
+
+@dataclass(frozen=True)
+class NodeLSTMConfig:
+    n_tracked: int                 # anchors + modelled nodes, in order along the rod
+    modeled: tuple[int, ...]       # positions of the modelled nodes in the tracked list
+    left: tuple[int, ...]          # tracked index of each modelled node's left neighbour
+    right: tuple[int, ...]         # ... right neighbour (the node itself at a free end)
+    eta: int = 2                   # history horizon: eta + 1 frames
+    hidden: int = 48
+    wrench_hidden: int = 16
+    embedding: int = 8
+    head_hidden: int = 64
+
+    def __post_init__(self):
+        K = len(self.modeled)
+        if K == 0 or len(self.left) != K or len(self.right) != K:
+            raise ValueError("modeled, left and right must be non-empty and of equal length")
+        if self.eta < 2:
+            raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
+        for name in ("modeled", "left", "right"):
+            if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
+                raise ValueError(f"{name} indices must lie in [0, n_tracked)")
+
+    @staticmethod
+    def chain(tracked: tuple[int, ...], modeled: tuple[int, ...], **kw) -> "NodeLSTMConfig":
+        """Neighbours along the tracked chain (rod node indices); the last tracked node, if modelled, is a
+        free end."""
+        pos = {n: i for i, n in enumerate(tracked)}
+        idx = [pos[m] for m in modeled]
+        left = [max(i - 1, 0) for i in idx]
+        right = [min(i + 1, len(tracked) - 1) for i in idx]
+        return NodeLSTMConfig(n_tracked=len(tracked), modeled=tuple(idx), left=tuple(left), right=tuple(right), **kw)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class NodeLSTMSurrogate(nn.Module):
+    """See the module docstring. Normalisation buffers are set with :meth:`set_scales`."""
+
+    def __init__(self, config: NodeLSTMConfig):
+        super().__init__()
+        self.config = c = config
+        K = len(c.modeled)
+        self.lstm = nn.LSTM(9, c.hidden, batch_first=True)
+        self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
+        self.embed = nn.Embedding(K, c.embedding)
+        self.head = nn.Sequential(nn.Linear(c.hidden + c.wrench_hidden + c.embedding, c.head_hidden), nn.Tanh(),
+                                  nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+        for name, idx in (("idx_modeled", c.modeled), ("idx_left", c.left), ("idx_right", c.right)):
+            self.register_buffer(name, torch.tensor(idx, dtype=torch.long), persistent=False)
+        free_end = torch.tensor([float(r == m) for r, m in zip(c.right, c.modeled)])
+        self.register_buffer("has_right", 1.0 - free_end[:, None], persistent=False)
+        self.register_buffer("length_scale", torch.ones(()))
+        self.register_buffer("v_scale", torch.ones(K, 3))
+        self.register_buffer("a_scale", torch.ones(K, 3))
+        self.register_buffer("f_scale", torch.ones(()))
+
+    @torch.no_grad()
+    def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
+        """Scales from training trajectories (a list of (T_i, n_tracked, 3)) and forces (..., K, 3)."""
+        v = torch.cat([p[1:, self.idx_modeled].double() - p[:-1, self.idx_modeled].double() for p in trajectories])
+        a = torch.cat([p[2:, self.idx_modeled].double() - 2 * p[1:-1, self.idx_modeled].double()
+                       + p[:-2, self.idx_modeled].double() for p in trajectories])
+        self.length_scale.fill_(length)
+        self.v_scale.copy_(v.std(0).clamp_min(1e-6 * length))
+        self.a_scale.copy_(a.std(0).clamp_min(1e-7 * length))
+        self.f_scale.fill_(float(wrench.abs().max()) if wrench.numel() and wrench.abs().max() > 0 else 1.0)
+
+    def features(self, hist: Tensor) -> Tensor:
+        """(B, W, n_tracked, 3) -> (B, K, W, 9) Input Layer I."""
+        pk = hist[:, :, self.idx_modeled]
+        rel_l = (hist[:, :, self.idx_left] - pk) / self.length_scale
+        rel_r = (hist[:, :, self.idx_right] - pk) * self.has_right / self.length_scale
+        step = torch.cat([torch.zeros_like(pk[:, :1]), pk[:, 1:] - pk[:, :-1]], 1) / self.v_scale
+        return torch.cat([rel_l, rel_r, step], -1).transpose(1, 2)
+
+    def forward(self, hist: Tensor, wrench: Tensor) -> Tensor:
+        """One surrogate step: history (B, eta+1, n_tracked, 3) and node forces (B, K, 3) -> the modelled
+        nodes' next positions (B, K, 3)."""
+        B, W = hist.shape[:2]
+        K = self.idx_modeled.numel()
+        f = self.features(hist).reshape(B * K, W, 9)
+        out, _ = self.lstm(f)
+        h = out[:, -1].reshape(B, K, -1)
+        wf = self.wrench(wrench / self.f_scale)
+        emb = self.embed.weight.expand(B, K, -1)
+        a = self.head(torch.cat([h, wf, emb], -1)) * self.a_scale
+        pk = hist[:, -1, self.idx_modeled]
+        return 2 * pk - hist[:, -2, self.idx_modeled] + a
+
+    def rollout(self, hist: Tensor, wrench: Tensor, anchors: Tensor | None = None) -> Tensor:
+        """Free-running rollout of H steps from ``hist`` (B, eta+1, n_tracked, 3) with node forces ``wrench``
+        (B, H, K, 3); anchor nodes follow ``anchors`` (B, H, n_tracked, 3) where given, else stay put.
+        Returns (B, H, n_tracked, 3)."""
+        W = self.config.eta + 1
+        if hist.shape[1] != W:
+            raise ValueError(f"hist must hold eta + 1 = {W} frames, got {hist.shape[1]}")
+        frames = list(hist.unbind(1))
+        out = []
+        for h in range(wrench.shape[1]):
+            nxt = anchors[:, h] if anchors is not None else frames[-1]
+            pk = self(torch.stack(frames[-W:], 1), wrench[:, h])
+            nxt = nxt.index_copy(1, self.idx_modeled, pk)
+            frames.append(nxt)
+            out.append(nxt)
+        return torch.stack(out, 1)

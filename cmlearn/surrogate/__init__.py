@@ -1,0 +1,6 @@
+"""Shipped surrogates: checkpoints and the real-time rollout engine (training lives in
+:mod:`cmlearn.surrogate.training`, which needs Lightning)."""
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .engine import Surrogate
+
+__all__ = ["CheckpointError", "Surrogate", "load_checkpoint", "save_checkpoint"]

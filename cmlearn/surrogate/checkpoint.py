@@ -1,0 +1,67 @@
+"""Surrogate checkpoints: weights plus metadata, written atomically, loadable without Lightning.
+
+A checkpoint is a ``torch.save`` dict::
+
+    {"format": "cmlearn-surrogate/1", "model_class": "NodeLSTMSurrogate", "config": {...},
+     "state_dict": {...}, "meta": {"task", "scene", "data_hash", "metrics", "command", "version", ...}}
+
+with a JSON copy of ``meta`` next to it (``<name>.json``) for humans and tools.
+"""
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import torch
+
+from cmlearn.io import atomic_write, write_text_atomic
+from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
+
+__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint"]
+
+FORMAT = "cmlearn-surrogate/1"
+_CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used: unreadable, of another format/class, or for another task."""
+
+
+def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> Path:
+    path = Path(path)
+    blob = {"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
+            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta}
+    buf = io.BytesIO()
+    torch.save(blob, buf)
+    atomic_write(path, lambda f: f.write(buf.getvalue()))
+    write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2, default=str) + "\n")
+    return path
+
+
+def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTMSurrogate, dict]:
+    """The model (eval mode, float32, CPU) and its metadata; :class:`CheckpointError` on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unpickling failure means an unusable file
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a {FORMAT} checkpoint")
+    cls = _CLASSES.get(blob.get("model_class"))
+    if cls is None:
+        raise CheckpointError(f"{path}: unknown model class {blob.get('model_class')!r}")
+    meta = blob.get("meta", {})
+    if task is not None and meta.get("task") != task:
+        raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
+    cfg = dict(blob["config"])
+    for key in ("modeled", "left", "right"):
+        cfg[key] = tuple(cfg[key])
+    try:
+        model = cls[0](cls[1](**cfg))
+        model.load_state_dict(blob["state_dict"])
+    except (TypeError, ValueError, RuntimeError, KeyError) as e:
+        raise CheckpointError(f"{path}: weights do not match the stored configuration ({str(e)[:200]})") from None
+    return model.eval(), meta

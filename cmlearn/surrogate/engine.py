@@ -1,0 +1,93 @@
+"""Real-time rollout of a shipped surrogate checkpoint on a scene (no Lightning needed).
+
+    engine = Surrogate.load("checkpoints/semicircle.pt")
+    positions, wall = engine.run_scene(engine.task.scene_by_name("semicircle_heldout"))
+
+``step(hist, wrench)`` is the batch-1 step a controller calls; ``compile()`` swaps in a
+``torch.compile``d step (optional; its compile time is not part of any step latency figure).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from cmlearn.data.tasks import SurrogateTask, get_task
+from cmlearn.data.windows import node_wrench
+
+from .checkpoint import load_checkpoint
+
+__all__ = ["Surrogate"]
+
+
+class Surrogate:
+    def __init__(self, model, meta: dict):
+        self.model, self.meta = model.eval(), meta
+        self.task: SurrogateTask = get_task(meta["task"])
+        self._step = model
+
+    @classmethod
+    def load(cls, path: str | Path, task: str | None = None) -> "Surrogate":
+        return cls(*load_checkpoint(path, task=task))
+
+    @property
+    def eta(self) -> int:
+        return self.model.config.eta
+
+    @torch.no_grad()
+    def step(self, hist: Tensor, wrench: Tensor) -> Tensor:
+        """Next positions (B, K, 3) of the modelled nodes from (B, eta+1, n_tracked, 3) and (B, K, 3)."""
+        return self._step(hist, wrench)
+
+    def compile(self, **kw) -> "Surrogate":
+        self._step = torch.compile(self.model, dynamic=False, **kw)
+        return self
+
+    def scene_wrench(self, scene, n_steps: int) -> Tensor:
+        """Node forces (n_steps, K, 3) at the interval midpoints, as in the training data."""
+        W = torch.zeros(n_steps, len(self.task.wrench_nodes), 3, dtype=torch.float32)
+        force, idx, d = scene.loads.force, list(self.task.wrench_nodes), self.task.delta
+        if force is not None and idx:
+            for k in range(n_steps):
+                f = force(torch.tensor((k + 0.5) * d, dtype=torch.float64))
+                if f is not None:
+                    W[k] = f[..., idx, :].float()
+        return node_wrench(W, self.task.wrench_nodes, self.task.modeled)
+
+    @torch.no_grad()
+    def run_scene(self, scene, duration: float | None = None) -> tuple[Tensor, float]:
+        """Free-running prediction of the tracked nodes (T, n_tracked, 3), T = steps + 1 (from rest in the
+        scene's initial shape), and the wall time of the rollout including the force evaluation."""
+        n = int(round((duration or scene.duration) / self.task.delta))
+        p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
+        t0 = time.perf_counter()
+        wrench = self.scene_wrench(scene, n)
+        frames = [p0] * (self.eta + 1)
+        idx = self.model.idx_modeled
+        out = [p0]
+        for k in range(n):
+            pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None])[0]
+            nxt = frames[-1].index_copy(0, idx, pk)
+            frames.append(nxt)
+            out.append(nxt)
+        wall = time.perf_counter() - t0
+        return torch.stack(out), wall
+
+    @torch.no_grad()
+    def step_latency(self, n: int = 2000, warmup: int = 50) -> float:
+        """Seconds per batch-1 step (median of ``n`` timed steps)."""
+        K, N, W = self.model.idx_modeled.numel(), self.model.config.n_tracked, self.eta + 1
+        hist = torch.zeros(1, W, N, 3)
+        hist[..., 2] = torch.linspace(0, 0.1, N)
+        wrench = torch.zeros(1, K, 3)
+        for _ in range(warmup):
+            self.step(hist, wrench)
+        times = []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            self.step(hist, wrench)
+            times.append(time.perf_counter() - t0)
+        times.sort()
+        return times[len(times) // 2]

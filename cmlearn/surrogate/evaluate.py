@@ -1,0 +1,62 @@
+"""Surrogate against physics on a recorded trajectory: one-step and free-running errors.
+
+``evaluate(model, task, positions, wrench, start)`` compares, for the task's nodes of interest,
+
+* one-step: each prediction made from the true history (the thesis's evaluation), and
+* free-running: the surrogate rolled out from the true history at frame ``start`` on its own
+  predictions to the end,
+
+and returns per-axis max/mean absolute errors (mm, % of L) and RMSE(t) (II.2).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from cmlearn.eval.metrics import axis_errors, rmse_t
+
+__all__ = ["one_step", "free_running", "evaluate", "interest_slots"]
+
+
+def interest_slots(task, scene) -> list[int]:
+    """Tracked-list positions of the scene's nodes of interest that the task models."""
+    pos = {n: i for i, n in enumerate(task.tracked)}
+    return [pos[n] for n in scene.nodes_of_interest if n in pos]
+
+
+@torch.no_grad()
+def one_step(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
+    """Teacher-forced predictions of frames start+1 .. T-1: (T-1-start, n_tracked, 3)."""
+    W = model.config.eta + 1
+    t = torch.arange(max(start, W - 1), positions.shape[0] - 1)
+    hist = torch.stack([positions[t - W + 1 + j] for j in range(W)], 1)
+    pk = model(hist.float(), wrench[t].float())
+    out = positions[t + 1].clone().float()
+    out[:, model.idx_modeled] = pk
+    return out
+
+
+@torch.no_grad()
+def free_running(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
+    """Free-running predictions of frames start+1 .. T-1 from the true history ending at ``start``."""
+    W = model.config.eta + 1
+    if start < W - 1:
+        raise ValueError(f"start must be >= eta = {W - 1}")
+    hist = positions[start - W + 1:start + 1].float()[None]
+    anchors = positions[start + 1:].float()[None]
+    return model.rollout(hist, wrench[start:].float()[None], anchors=anchors)[0]
+
+
+def evaluate(model, positions: Tensor, wrench: Tensor, start: int, slots, length: float) -> dict:
+    """Errors of both modes at the tracked ``slots`` (the first is the headline node)."""
+    W = model.config.eta + 1
+    s = max(start, W - 1)
+    ref = positions[s + 1:, slots].double()
+    out = {}
+    for mode, fn in (("one_step", one_step), ("free_running", free_running)):
+        pred = fn(model, positions, wrench, s)[:, slots].double()
+        r = rmse_t(pred[:, 0], ref[:, 0])
+        out[mode] = {"node": axis_errors(pred[:, 0], ref[:, 0], length),
+                     "all_nodes_max_mm": float((pred - ref).abs().max()) * 1e3,
+                     "rmse_mean_mm": float(r.mean()) * 1e3, "rmse_max_mm": float(r.max()) * 1e3}
+    return out

@@ -1,0 +1,86 @@
+"""Lightning wrappers around :class:`~cmlearn.models.NodeLSTMSurrogate` (imported only for training).
+
+The loss is the free-running rollout error over a horizon that grows from 1 step (the one-step
+fit) to ``horizon`` steps during training (a curriculum), each node's error normalised by its
+second-difference scale, so that the model learns to stay accurate when it feeds on its own
+predictions, not only one step ahead.
+"""
+from __future__ import annotations
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
+from cmlearn.models import NodeLSTMSurrogate
+
+__all__ = ["SurrogateDataModule", "SurrogateModule"]
+
+
+class SurrogateDataModule(L.LightningDataModule):
+    def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
+                 num_workers: int = 0, seed: int = 0):
+        super().__init__()
+        meta = dataset["meta"]
+        self.positions = dataset["positions"]
+        self.wrench = node_wrench(dataset["wrench"], meta["wrench_nodes"], meta["modeled"])
+        self.ranges = split_ranges(meta["n_variants"], self.positions.shape[1], val_variants=val_variants)
+        self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
+        self.num_workers, self.seed = num_workers, seed
+
+    def train_positions(self):
+        """Trajectories the scales may be computed from (training ranges only)."""
+        return [self.positions[v, a:b + 1] for v, a, b in self.ranges["train"]]
+
+    def _loader(self, split: str, shuffle: bool):
+        ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon)
+        g = torch.Generator().manual_seed(self.seed)
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
+                          num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
+
+    def train_dataloader(self):
+        return self._loader("train", True)
+
+    def val_dataloader(self):
+        return self._loader("val", False)
+
+
+class SurrogateModule(L.LightningModule):
+    def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
+                 weight_decay: float = 0.0, max_epochs: int = 100):
+        super().__init__()
+        self.model = model
+        self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
+        self.weight_decay, self.max_epochs = weight_decay, max_epochs
+        self.save_hyperparameters(ignore=["model"])
+
+    def current_horizon(self) -> int:
+        frac = min(1.0, (self.current_epoch + 1) / max(1, self.warmup_epochs))
+        return max(1, int(round(frac * self.horizon)))
+
+    def rollout_loss(self, batch, horizon: int):
+        hist, future, wrench = batch
+        m = self.model
+        idx = m.idx_modeled
+        pred = m.rollout(hist, wrench[:, :horizon], anchors=future[:, :horizon])
+        err = (pred[:, :, idx] - future[:, :horizon, idx]) / m.a_scale
+        return err.pow(2).mean(), pred
+
+    def training_step(self, batch, batch_idx):
+        loss, _ = self.rollout_loss(batch, self.current_horizon())
+        self.log("train_loss", loss, prog_bar=True, on_epoch=True, on_step=False)
+        self.log("horizon", float(self.current_horizon()), on_epoch=True, on_step=False)
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        loss, pred = self.rollout_loss(batch, self.horizon)
+        hist, future, _ = batch
+        idx = self.model.idx_modeled
+        mm = (pred[:, :, idx] - future[:, :self.horizon, idx]).abs().amax() * 1e3
+        self.log("val_loss", loss, prog_bar=True)
+        self.log("val_max_err_mm", mm, reduce_fx="max")
+
+    def configure_optimizers(self):
+        opt = torch.optim.AdamW(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, self.max_epochs), eta_min=self.lr * 0.05)
+        return {"optimizer": opt, "lr_scheduler": sched}

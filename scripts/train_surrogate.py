@@ -1,0 +1,168 @@
+"""Train a distributed LSTM node surrogate on LGVI data and ship it as a checkpoint.
+
+    python scripts/train_surrogate.py --task semicircle [--variants 24] [--epochs 60] [--quick]
+
+Generates the dataset with the physics if ``data/<task>_v<V>_s<seed>.pt`` is missing, trains with
+Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, early stopping
+on the validation rollout loss, ``--resume`` from a Lightning checkpoint, ``--ddp`` for
+multi-process data parallel), evaluates one-step and free-running errors on the printed scene's
+unseen last 40 % and on the held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
+the metrics and this exact command. Prints one JSON line last.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import torch
+
+import cmlearn
+from cmlearn.data import generate_dataset, get_task, load_dataset, scene_rollout
+from cmlearn.data.windows import node_wrench, split_ranges
+from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
+from cmlearn.surrogate import save_checkpoint
+from cmlearn.surrogate.evaluate import evaluate, interest_slots
+
+
+@dataclass
+class Args:
+    task: str = "semicircle"
+    variants: int = 24
+    seed: int = 0
+    eta: int = 2
+    hidden: int = 48
+    horizon: int = 32
+    warmup_epochs: int = 15
+    epochs: int = 60
+    batch_size: int = 64
+    lr: float = 3e-3
+    patience: int = 15
+    threads: int = 2
+    data_dir: str = "data"
+    out: str = ""
+    log_dir: str = "logs"
+    resume: str = ""
+    ddp: bool = False
+    devices: int = 1
+    quick: bool = False
+    duration: float = 0.0
+
+
+def parse(argv=None) -> Args:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for f in fields(Args):
+        if f.type in ("bool", bool):
+            ap.add_argument(f"--{f.name.replace('_', '-')}", action="store_true")
+        else:
+            ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
+    a = Args(**vars(ap.parse_args(argv)))
+    if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
+        a.variants, a.epochs, a.warmup_epochs, a.horizon = min(a.variants, 3), min(a.epochs, 2), 1, min(a.horizon, 4)
+        a.duration = a.duration or 0.3
+    return a
+
+
+def build_model(task, a: Args) -> NodeLSTMSurrogate:
+    cfg = NodeLSTMConfig.chain(task.tracked, task.modeled, eta=a.eta, hidden=a.hidden)
+    return NodeLSTMSurrogate(cfg)
+
+
+def dataset_for(task, a: Args) -> dict:
+    suffix = f"_d{a.duration:g}" if a.duration else ""
+    path = Path(a.data_dir) / f"{task.name}_v{a.variants}_s{a.seed}{suffix}.pt"
+    if not path.exists():
+        print(f"generating {path} with the LGVI ({a.variants} variants) ...", flush=True)
+        generate_dataset(task, a.variants, a.seed, path, duration=a.duration or None)
+    return load_dataset(path, task=task.name)
+
+
+def evaluate_all(model, task, data: dict, a: Args) -> dict:
+    """Seen scene (variant 0, last 40 %) and the held-out scenes from rest, both modes."""
+    meta = data["meta"]
+    pos = data["positions"][0]
+    wr = node_wrench(data["wrench"][0], meta["wrench_nodes"], meta["modeled"])
+    scene = task.base_scene()
+    L = scene.rod.length
+    slots = interest_slots(task, scene)
+    cut = split_ranges(meta["n_variants"], pos.shape[0])["test"][0][1]
+    metrics = {"seen_last40": evaluate(model, pos, wr, cut, slots, L)}
+    for name in task.heldout:
+        held = task.scene_by_name(name)
+        if a.duration:
+            from dataclasses import replace
+            held = replace(held, duration=a.duration)
+        p, W, wall = scene_rollout(task, held)
+        Wk = node_wrench(W.float(), task.wrench_nodes, task.modeled)
+        # the surrogate starts from rest: a history of eta + 1 copies of the initial frame
+        p_hist = torch.cat([p[:1].expand(a.eta, -1, -1), p], 0)
+        W_hist = torch.cat([torch.zeros(a.eta, *Wk.shape[1:]), Wk], 0)
+        metrics[name] = evaluate(model, p_hist, W_hist, a.eta, interest_slots(task, held), L)
+        metrics[name]["lgvi_wall_s"] = wall
+    return metrics
+
+
+def main(argv=None):
+    a = parse(argv)
+    import lightning as L
+    from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
+
+    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
+
+    torch.set_num_threads(a.threads)
+    L.seed_everything(a.seed, workers=True)
+    task = get_task(a.task)
+    t0 = time.perf_counter()
+    data = dataset_for(task, a)
+    t_data = time.perf_counter() - t0
+    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=a.seed)
+    model = build_model(task, a)
+    model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
+    module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr, max_epochs=a.epochs)
+    loggers = [CSVLogger(a.log_dir, name=task.name)]
+    try:
+        from lightning.pytorch.loggers import TensorBoardLogger
+        import tensorboard  # noqa: F401
+        loggers.append(TensorBoardLogger(a.log_dir, name=task.name))
+    except ImportError:
+        pass
+    ckpt_cb = ModelCheckpoint(dirpath=Path(a.log_dir) / task.name / "ckpt", monitor="val_loss", save_last=True)
+    trainer = L.Trainer(
+        max_epochs=a.epochs, logger=loggers, deterministic=True, enable_progress_bar=True,
+        callbacks=[EarlyStopping("val_loss", patience=a.patience), ckpt_cb], gradient_clip_val=1.0,
+        accelerator="cpu", devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
+        num_sanity_val_steps=0)
+    trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)
+    if ckpt_cb.best_model_path:
+        state = torch.load(ckpt_cb.best_model_path, map_location="cpu", weights_only=False)["state_dict"]
+        module.load_state_dict(state)
+    model = module.model.float().eval()
+    t_train = time.perf_counter() - t0 - t_data
+    metrics = evaluate_all(model, task, data, a)
+    cmd = "python scripts/train_surrogate.py " + " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
+    meta = {"task": task.name, "scene": task.scene, "heldout": list(task.heldout), "delta": task.delta,
+            "tracked": list(task.tracked), "modeled": list(task.modeled), "wrench_nodes": list(task.wrench_nodes),
+            "architecture": model.config.to_dict(), "n_parameters": sum(p.numel() for p in model.parameters()),
+            "data_hash": data["meta"]["data_hash"], "data_seed": a.seed, "n_variants": a.variants,
+            "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
+            "torch": torch.__version__, "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
+            "data_wall_s": t_data}
+    out = Path(a.out or f"checkpoints/{task.name}.pt")
+    save_checkpoint(out, model, meta)
+    print(f"wrote {out}")
+    for case, m in metrics.items():
+        for mode in ("one_step", "free_running"):
+            e = m[mode]["node"]
+            print(f"  {case:28s} {mode:12s} " + "  ".join(
+                f"{ax}: {e[ax]['max_mm']:.2f}/{e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
+    print(json.dumps({"checkpoint": str(out), "metrics": metrics, "train_wall_s": t_train}))
+    return meta
+
+
+if __name__ == "__main__":
+    main()
