@@ -22,31 +22,9 @@ from torch import Tensor
 from .base import FieldModel, check_points
 from .dipole import MU0
 from .sources import DipoleSet
+from .validate import positive as _positive, rotation as _rotation, vec3 as _vec3
 
 __all__ = ["CuboidMagnet", "CylinderMagnet", "SphereMagnet", "MagnetField"]
-
-
-def _vec3(name: str, value) -> tuple[float, float, float]:
-    t = tuple(float(v) for v in torch.as_tensor(value, dtype=torch.float64).reshape(-1).tolist())
-    if len(t) != 3 or not all(math.isfinite(v) for v in t):
-        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
-    return t
-
-
-def _rotation(value) -> tuple[tuple[float, ...], ...]:
-    R = torch.as_tensor(value, dtype=torch.float64)
-    if R.shape != (3, 3) or not bool(torch.isfinite(R).all()):
-        raise ValueError(f"orientation must be a finite 3x3 rotation matrix, got shape {tuple(R.shape)}")
-    if float((R.T @ R - torch.eye(3, dtype=R.dtype)).abs().max()) > 1e-9 or float(torch.linalg.det(R)) < 0:
-        raise ValueError("orientation must be a proper rotation matrix (R^T R = I, det R = +1)")
-    return tuple(tuple(row) for row in R.tolist())
-
-
-def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be finite and > 0, got {value}")
-    return value
 
 
 @dataclass(frozen=True)
