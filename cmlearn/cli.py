@@ -9,6 +9,10 @@
     ``summary.json`` into ``--out`` (default ``./out/simulate_<scene>``), each written to a
     temporary file and renamed into place.
 
+``cmlearn compare [--scene NAME] [--checkpoint PATH] [--duration S] [--out DIR]``
+    run the LGVI and the shipped LSTM surrogate on a scene (default the held-out semicircle) and
+    report per-axis errors, RMSE(t), wall times and the speed-up (:mod:`cmlearn.compare`).
+
 Heavy modules (torch, matplotlib, the physics package) are imported only by the command that
 needs them, so ``cmlearn --help`` is quick.
 """
@@ -64,6 +68,15 @@ def build_parser() -> argparse.ArgumentParser:
     p_sim.add_argument("--record-every", type=_positive_int, default=None,
                        help=f"record every K-th step (default: about {_FRAMES} frames)")
     p_sim.set_defaults(func=_cmd_simulate)
+    from .compare import DEFAULT_COMPARE_SCENE
+    p_cmp = sub.add_parser("compare", help="run the physics and the shipped surrogate on a scene and compare",
+                           description="Run the LGVI and the shipped LSTM node surrogate on the same scene; print "
+                                       "per-axis errors, RMSE(t), wall times and the speed-up; write plots.")
+    p_cmp.add_argument("--scene", default=DEFAULT_COMPARE_SCENE, help=f"scene (default {DEFAULT_COMPARE_SCENE})")
+    p_cmp.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default checkpoints/<task>.pt)")
+    p_cmp.add_argument("--duration", type=_positive_float, default=None, help="simulated seconds")
+    p_cmp.add_argument("--out", type=Path, default=None, help="output folder (default ./out/compare_<scene>)")
+    p_cmp.set_defaults(func=_cmd_compare)
     return parser
 
 
@@ -207,6 +220,18 @@ def _report(scene, s: dict) -> None:
     print(f"{nd['label']} (node {nd['index']}) position (mm):   min        max        mean")
     for k in range(3):
         print(f"  {'xyz'[k]}  {nd['min_mm'][k]:14.4f} {nd['max_mm'][k]:10.4f} {nd['mean_mm'][k]:10.4f}")
+
+
+def _cmd_compare(args) -> int:
+    from .compare import run_compare
+    from .surrogate import CheckpointError
+
+    try:
+        run_compare(args.scene, args.checkpoint, args.duration, args.out)
+    except (KeyError, FileNotFoundError, CheckpointError) as e:
+        print(f"cmlearn compare: {e.args[0] if e.args else e}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def _cmd_simulate(args) -> int:

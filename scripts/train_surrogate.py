@@ -40,7 +40,10 @@ class Args:
     warmup_epochs: int = 15
     epochs: int = 60
     batch_size: int = 64
+    train_batches: int = 0  # batches per epoch (0: all windows)
     lr: float = 3e-3
+    weight_decay: float = 1e-4
+    noise: float = 0.0  # training-noise std on the history, in units of each node's step scale
     patience: int = 15
     threads: int = 2
     data_dir: str = "data"
@@ -123,7 +126,8 @@ def main(argv=None):
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=a.seed)
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
-    module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr, max_epochs=a.epochs)
+    module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
+                             weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger
@@ -131,11 +135,11 @@ def main(argv=None):
         loggers.append(TensorBoardLogger(a.log_dir, name=task.name))
     except ImportError:
         pass
-    ckpt_cb = ModelCheckpoint(dirpath=Path(a.log_dir) / task.name / "ckpt", monitor="val_loss", save_last=True)
+    ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor="val_loss", save_last=True)
     trainer = L.Trainer(
         max_epochs=a.epochs, logger=loggers, deterministic=True, enable_progress_bar=True,
         callbacks=[EarlyStopping("val_loss", patience=a.patience), ckpt_cb], gradient_clip_val=1.0,
-        accelerator="cpu", devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
+        limit_train_batches=a.train_batches or 1.0, accelerator="cpu", devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
         num_sanity_val_steps=0)
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)
     if ckpt_cb.best_model_path:
@@ -152,6 +156,9 @@ def main(argv=None):
             "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
             "torch": torch.__version__, "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
             "data_wall_s": t_data}
+    from cmlearn.surrogate import Surrogate
+    from cmlearn.surrogate.evaluate import short_check
+    meta["check"] = short_check(Surrogate(model, meta), task.scene, min(0.5, a.duration or 0.5))
     out = Path(a.out or f"checkpoints/{task.name}.pt")
     save_checkpoint(out, model, meta)
     print(f"wrote {out}")

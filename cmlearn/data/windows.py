@@ -1,4 +1,5 @@
-"""Training windows: (history of eta + 1 frames, the next H frames, the node forces over them)."""
+"""Training windows: (history of eta + 1 frames, the next H frames, the node forces over them, and the
+trajectory's first frame as the reference shape)."""
 from __future__ import annotations
 
 import torch
@@ -48,4 +49,4 @@ class RolloutWindows(Dataset):
     def __getitem__(self, i):
         v, t = self.index[i]
         p = self.positions[v]
-        return p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H]
+        return p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H], p[0]

@@ -1,10 +1,14 @@
 """Distributed LSTM node surrogate (Paper II, Figure II.2), batched over all modelled nodes.
 
 Each modelled node ``k`` sees a window of its own and its two neighbours' positions over the last
-``eta + 1`` surrogate steps (Input Layer I) and the world force on it (Input Layer II):
+``eta + 1`` surrogate steps (Input Layer I) and the world force on it (Input Layer II). Positions
+enter as displacements from a reference configuration ``ref`` (the rollout's initial shape), the
+way a finite-element model sees them, so the small motions that drive the dynamics are not buried
+under the large constant coordinates:
 
-* Input I, per frame: ``[p_left - p_k, p_right - p_k] / L`` and the node's own step
-  ``(p_k(tau) - p_k(tau - 1)) / v_scale`` (9 features), through an LSTM;
+* Input I, per frame (18 features): the node's displacement ``(p_k - p_k^ref) / D_k``, the changes
+  of its neighbour offsets ``((p_j - p_k) - (p_j - p_k)^ref) / d_k`` (j = left, right), its step
+  ``(p_k(tau) - p_k(tau - 1)) / v_k`` and the reference offsets ``(p_j - p_k)^ref / L``; through an LSTM;
 * Input II: the node force ``/ f_scale`` through two dense layers;
 * the LSTM's last output, the force features and a learned node embedding are concatenated and a
   dense head outputs the node's normalised second difference ``a_k``; the next position is
@@ -24,6 +28,8 @@ import torch
 from torch import Tensor, nn
 
 __all__ = ["NodeLSTMConfig", "NodeLSTMSurrogate"]
+
+N_FEATURES = 18
 
 
 @dataclass(frozen=True)
@@ -69,7 +75,7 @@ class NodeLSTMSurrogate(nn.Module):
         super().__init__()
         self.config = c = config
         K = len(c.modeled)
-        self.lstm = nn.LSTM(9, c.hidden, batch_first=True)
+        self.lstm = nn.LSTM(N_FEATURES, c.hidden, batch_first=True)
         self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
         self.embed = nn.Embedding(K, c.embedding)
         self.head = nn.Sequential(nn.Linear(c.hidden + c.wrench_hidden + c.embedding, c.head_hidden), nn.Tanh(),
@@ -81,35 +87,54 @@ class NodeLSTMSurrogate(nn.Module):
         free_end = torch.tensor([float(r == m) for r, m in zip(c.right, c.modeled)])
         self.register_buffer("has_right", 1.0 - free_end[:, None], persistent=False)
         self.register_buffer("length_scale", torch.ones(()))
+        self.register_buffer("disp_scale", torch.ones(K, 3))
+        self.register_buffer("rel_scale", torch.ones(K, 6))
         self.register_buffer("v_scale", torch.ones(K, 3))
         self.register_buffer("a_scale", torch.ones(K, 3))
         self.register_buffer("f_scale", torch.ones(()))
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
-        """Scales from training trajectories (a list of (T_i, n_tracked, 3)) and forces (..., K, 3)."""
-        v = torch.cat([p[1:, self.idx_modeled].double() - p[:-1, self.idx_modeled].double() for p in trajectories])
-        a = torch.cat([p[2:, self.idx_modeled].double() - 2 * p[1:-1, self.idx_modeled].double()
-                       + p[:-2, self.idx_modeled].double() for p in trajectories])
+        """Scales from training trajectories (a list of (T_i, n_tracked, 3), each starting at its reference
+        shape) and forces (..., K, 3)."""
+        tiny = 1e-9 * length
+        disp, rel, v, a = [], [], [], []
+        for p in trajectories:
+            p = p.double()
+            pk = p[:, self.idx_modeled]
+            disp.append(pk - pk[:1])
+            r = self._offsets(p)
+            rel.append(r - r[:1])
+            v.append(pk[1:] - pk[:-1])
+            a.append(pk[2:] - 2 * pk[1:-1] + pk[:-2])
         self.length_scale.fill_(length)
-        self.v_scale.copy_(v.std(0).clamp_min(1e-6 * length))
-        self.a_scale.copy_(a.std(0).clamp_min(1e-7 * length))
+        self.disp_scale.copy_(torch.cat(disp).std(0).clamp_min(1e3 * tiny))
+        self.rel_scale.copy_(torch.cat(rel).std(0).clamp_min(1e2 * tiny))
+        self.v_scale.copy_(torch.cat(v).std(0).clamp_min(10 * tiny))
+        self.a_scale.copy_(torch.cat(a).std(0).clamp_min(tiny))
         self.f_scale.fill_(float(wrench.abs().max()) if wrench.numel() and wrench.abs().max() > 0 else 1.0)
 
-    def features(self, hist: Tensor) -> Tensor:
-        """(B, W, n_tracked, 3) -> (B, K, W, 9) Input Layer I."""
-        pk = hist[:, :, self.idx_modeled]
-        rel_l = (hist[:, :, self.idx_left] - pk) / self.length_scale
-        rel_r = (hist[:, :, self.idx_right] - pk) * self.has_right / self.length_scale
-        step = torch.cat([torch.zeros_like(pk[:, :1]), pk[:, 1:] - pk[:, :-1]], 1) / self.v_scale
-        return torch.cat([rel_l, rel_r, step], -1).transpose(1, 2)
+    def _offsets(self, p: Tensor) -> Tensor:
+        """Neighbour offsets (..., K, 6) of positions (..., n_tracked, 3); zero beyond a free end."""
+        pk = p[..., self.idx_modeled, :]
+        return torch.cat([p[..., self.idx_left, :] - pk, (p[..., self.idx_right, :] - pk) * self.has_right], -1)
 
-    def forward(self, hist: Tensor, wrench: Tensor) -> Tensor:
-        """One surrogate step: history (B, eta+1, n_tracked, 3) and node forces (B, K, 3) -> the modelled
-        nodes' next positions (B, K, 3)."""
+    def features(self, hist: Tensor, ref: Tensor) -> Tensor:
+        """(B, W, n_tracked, 3) history and (B, n_tracked, 3) reference -> (B, K, W, 18) Input Layer I."""
+        pk = hist[:, :, self.idx_modeled]
+        rel0 = self._offsets(ref)[:, None]
+        disp = (pk - ref[:, None, self.idx_modeled]) / self.disp_scale
+        drel = (self._offsets(hist) - rel0) / self.rel_scale
+        step = torch.cat([torch.zeros_like(pk[:, :1]), pk[:, 1:] - pk[:, :-1]], 1) / self.v_scale
+        geo = (rel0 / self.length_scale).expand(-1, hist.shape[1], -1, -1)
+        return torch.cat([disp, drel, step, geo], -1).transpose(1, 2)
+
+    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
+        """One surrogate step: history (B, eta+1, n_tracked, 3), node forces (B, K, 3) and the reference
+        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3)."""
         B, W = hist.shape[:2]
         K = self.idx_modeled.numel()
-        f = self.features(hist).reshape(B * K, W, 9)
+        f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
         out, _ = self.lstm(f)
         h = out[:, -1].reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)
@@ -118,10 +143,10 @@ class NodeLSTMSurrogate(nn.Module):
         pk = hist[:, -1, self.idx_modeled]
         return 2 * pk - hist[:, -2, self.idx_modeled] + a
 
-    def rollout(self, hist: Tensor, wrench: Tensor, anchors: Tensor | None = None) -> Tensor:
+    def rollout(self, hist: Tensor, wrench: Tensor, ref: Tensor, anchors: Tensor | None = None) -> Tensor:
         """Free-running rollout of H steps from ``hist`` (B, eta+1, n_tracked, 3) with node forces ``wrench``
-        (B, H, K, 3); anchor nodes follow ``anchors`` (B, H, n_tracked, 3) where given, else stay put.
-        Returns (B, H, n_tracked, 3)."""
+        (B, H, K, 3) and reference shape ``ref`` (B, n_tracked, 3); anchor nodes follow ``anchors``
+        (B, H, n_tracked, 3) where given, else stay put. Returns (B, H, n_tracked, 3)."""
         W = self.config.eta + 1
         if hist.shape[1] != W:
             raise ValueError(f"hist must hold eta + 1 = {W} frames, got {hist.shape[1]}")
@@ -129,7 +154,7 @@ class NodeLSTMSurrogate(nn.Module):
         out = []
         for h in range(wrench.shape[1]):
             nxt = anchors[:, h] if anchors is not None else frames[-1]
-            pk = self(torch.stack(frames[-W:], 1), wrench[:, h])
+            pk = self(torch.stack(frames[-W:], 1), wrench[:, h], ref)
             nxt = nxt.index_copy(1, self.idx_modeled, pk)
             frames.append(nxt)
             out.append(nxt)

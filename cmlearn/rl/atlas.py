@@ -4,7 +4,7 @@ The thesis swept the real environment with the end-effector camera on a 1 cm gri
 on those images; the atlas does the same with :class:`~cmlearn.rl.camera.PybulletCamera`.
 A view is looked up at the grid node nearest the end-effector (so off-grid positions, e.g. under
 Sub-controller 1, see the image up to 7 mm away; the discrete actions move 1 cm, so Sub-controller
-2 stays on nodes). Views render lazily on first use; :meth:`Atlas.precompute` renders all.
+2 stays on nodes). Views render lazily on first use (saved once all are rendered); :meth:`Atlas.precompute` renders all.
 
 On disk (``cache_dir``), an atlas is one ``.npz`` named by the SHA-256 of the map's pixels,
 resolution, origin and grid step, the camera spec and ``ATLAS_VERSION``; it is written atomically
@@ -49,7 +49,7 @@ class Atlas:
         self.filled = np.zeros((map_.nx, map_.ny), dtype=bool)
         self._filled = self.filled.tolist()
         self._camera = None
-        self.renders = 0
+        self.renders = self._count = 0
         if self.cache_dir is not None and self.path.exists():
             self._load()
 
@@ -66,6 +66,7 @@ class Atlas:
         self.images[:] = imgs
         self.filled[:] = True
         self._filled = self.filled.tolist()
+        self._count = self.filled.size
 
     def camera(self) -> PybulletCamera:
         if self._camera is None:
@@ -77,6 +78,9 @@ class Atlas:
             self.images[i, j] = self.camera().render(*self.map.node_xy(i, j))
             self.filled[i, j] = self._filled[i][j] = True
             self.renders += 1
+            self._count += 1
+            if self._count == self.filled.size:
+                self.save()  # the lazy fill just completed
         return self.images[i, j]
 
     def view(self, x: float, y: float) -> np.ndarray:
@@ -86,7 +90,7 @@ class Atlas:
         for i in range(self.map.nx):
             for j in range(self.map.ny):
                 self.node_view(i, j)
-        if save:
+        if save and self.path is not None and not self.path.exists():
             self.save()
         return self
 

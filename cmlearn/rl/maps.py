@@ -59,7 +59,8 @@ class Map:
         self.clear_px = (distance_transform_edt(padded)[1:-1, 1:-1] - 0.5).clip(0) * self.resolution
         self._clear_list = self.clear_px.tolist()
         H, W = self.image.shape
-        self.nx, self.ny = int(W * self.resolution / self.step), int(H * self.resolution / self.step)
+        self.nx = int(math.floor(W * self.resolution / self.step + 1e-9))
+        self.ny = int(math.floor(H * self.resolution / self.step + 1e-9))
         if self.nx < 1 or self.ny < 1:
             raise ValueError(f"map of {W}x{H} px at {self.resolution} m/px is smaller than one grid step {self.step} m")
         self.node_clear = np.array([[self.clearance_at(*self.node_xy(i, j)) for j in range(self.ny)]

@@ -254,16 +254,19 @@ class UR5:
         import pybullet as p
         from scipy.spatial.transform import Rotation
         cid, body, tool = self.pybullet()
-        for j in range(6):
-            p.resetJointState(body, j, float(ref[j]), physicsClientId=cid)
-        quat = Rotation.from_matrix(T_tool[:3, :3]).as_quat()
-        q = np.asarray(p.calculateInverseKinematics(
-            body, tool, T_tool[:3, 3].tolist(), quat.tolist(), lowerLimits=self.limits[:, 0].tolist(),
-            upperLimits=self.limits[:, 1].tolist(), jointRanges=(self.limits[:, 1] - self.limits[:, 0]).tolist(),
-            restPoses=ref.tolist(), maxNumIterations=200, residualThreshold=1e-9, physicsClientId=cid))[:6]
-        ok = self._error(q, T_tool) < max(self.tol, 1e-5) and bool(
-            ((q >= self.limits[:, 0]) & (q <= self.limits[:, 1])).all())
-        return q if ok else None
+        quat = Rotation.from_matrix(T_tool[:3, :3]).as_quat().tolist()
+        q = ref
+        for _ in range(5):  # re-seeded refinements of pybullet's damped least squares
+            for j in range(6):
+                p.resetJointState(body, j, float(q[j]), physicsClientId=cid)
+            q = np.asarray(p.calculateInverseKinematics(
+                body, tool, T_tool[:3, 3].tolist(), quat, maxNumIterations=200, residualThreshold=1e-10,
+                physicsClientId=cid))[:6]
+            if self._error(q, T_tool) < max(self.tol, 1e-6):
+                break
+        if self._error(q, T_tool) >= max(self.tol, 1e-5):
+            return None
+        return self._nearest(q, ref)  # None when no 2 pi shift fits the joint limits
 
     def close(self):
         if self._pb is not None:

@@ -37,9 +37,10 @@ class Surrogate:
         return self.model.config.eta
 
     @torch.no_grad()
-    def step(self, hist: Tensor, wrench: Tensor) -> Tensor:
-        """Next positions (B, K, 3) of the modelled nodes from (B, eta+1, n_tracked, 3) and (B, K, 3)."""
-        return self._step(hist, wrench)
+    def step(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
+        """Next positions (B, K, 3) of the modelled nodes from the history (B, eta+1, n_tracked, 3), the node
+        forces (B, K, 3) and the reference (initial) shape (B, n_tracked, 3)."""
+        return self._step(hist, wrench, ref)
 
     def compile(self, **kw) -> "Surrogate":
         self._step = torch.compile(self.model, dynamic=False, **kw)
@@ -68,7 +69,7 @@ class Surrogate:
         idx = self.model.idx_modeled
         out = [p0]
         for k in range(n):
-            pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None])[0]
+            pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], p0[None])[0]
             nxt = frames[-1].index_copy(0, idx, pk)
             frames.append(nxt)
             out.append(nxt)
@@ -82,12 +83,13 @@ class Surrogate:
         hist = torch.zeros(1, W, N, 3)
         hist[..., 2] = torch.linspace(0, 0.1, N)
         wrench = torch.zeros(1, K, 3)
+        ref = hist[:, 0]
         for _ in range(warmup):
-            self.step(hist, wrench)
+            self.step(hist, wrench, ref)
         times = []
         for _ in range(n):
             t0 = time.perf_counter()
-            self.step(hist, wrench)
+            self.step(hist, wrench, ref)
             times.append(time.perf_counter() - t0)
         times.sort()
         return times[len(times) // 2]

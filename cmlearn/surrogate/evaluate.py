@@ -1,5 +1,7 @@
 """Surrogate against physics on a recorded trajectory: one-step and free-running errors.
 
+The trajectory's first frame is the surrogate's reference shape.
+
 ``evaluate(model, task, positions, wrench, start)`` compares, for the task's nodes of interest,
 
 * one-step: each prediction made from the true history (the thesis's evaluation), and
@@ -30,7 +32,8 @@ def one_step(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
     W = model.config.eta + 1
     t = torch.arange(max(start, W - 1), positions.shape[0] - 1)
     hist = torch.stack([positions[t - W + 1 + j] for j in range(W)], 1)
-    pk = model(hist.float(), wrench[t].float())
+    ref = positions[:1].float().expand(len(t), -1, -1)
+    pk = model(hist.float(), wrench[t].float(), ref)
     out = positions[t + 1].clone().float()
     out[:, model.idx_modeled] = pk
     return out
@@ -44,7 +47,7 @@ def free_running(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor
         raise ValueError(f"start must be >= eta = {W - 1}")
     hist = positions[start - W + 1:start + 1].float()[None]
     anchors = positions[start + 1:].float()[None]
-    return model.rollout(hist, wrench[start:].float()[None], anchors=anchors)[0]
+    return model.rollout(hist, wrench[start:].float()[None], positions[:1].float(), anchors=anchors)[0]
 
 
 def evaluate(model, positions: Tensor, wrench: Tensor, start: int, slots, length: float) -> dict:
@@ -60,3 +63,19 @@ def evaluate(model, positions: Tensor, wrench: Tensor, start: int, slots, length
                      "all_nodes_max_mm": float((pred - ref).abs().max()) * 1e3,
                      "rmse_mean_mm": float(r.mean()) * 1e3, "rmse_max_mm": float(r.max()) * 1e3}
     return out
+
+
+def short_check(engine, scene_name: str, duration: float) -> dict:
+    """Free-running surrogate against the LGVI on the first ``duration`` seconds of a scene: the
+    headline node's maximum error (mm). Shipped with each checkpoint so that a test can reproduce it."""
+    from dataclasses import replace
+
+    from cmlearn.data.generate import scene_rollout
+
+    task = engine.task
+    scene = replace(task.scene_by_name(scene_name), duration=duration)
+    ref, _, _ = scene_rollout(task, scene)
+    pred, _ = engine.run_scene(scene)
+    slot = interest_slots(task, scene)[0]
+    return {"scene": scene_name, "duration": duration,
+            "max_err_mm": float((pred[:, slot].double() - ref[:, slot].double()).abs().max()) * 1e3}

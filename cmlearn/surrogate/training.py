@@ -1,9 +1,10 @@
 """Lightning wrappers around :class:`~cmlearn.models.NodeLSTMSurrogate` (imported only for training).
 
 The loss is the free-running rollout error over a horizon that grows from 1 step (the one-step
-fit) to ``horizon`` steps during training (a curriculum), each node's error normalised by its
-second-difference scale, so that the model learns to stay accurate when it feeds on its own
-predictions, not only one step ahead.
+fit) to ``horizon`` steps during training (a curriculum), with optional training noise on the
+history (:meth:`SurrogateModule.noisy`), so that the model learns to stay accurate when it feeds
+on its own predictions, not only one step ahead. Errors are in units of the mean second-difference scale, the
+same for every node, so the loss weighs millimetres equally along the rod.
 """
 from __future__ import annotations
 
@@ -47,9 +48,10 @@ class SurrogateDataModule(L.LightningDataModule):
 
 class SurrogateModule(L.LightningModule):
     def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
-                 weight_decay: float = 0.0, max_epochs: int = 100):
+                 weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0):
         super().__init__()
         self.model = model
+        self.noise = noise
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
         self.save_hyperparameters(ignore=["model"])
@@ -59,22 +61,32 @@ class SurrogateModule(L.LightningModule):
         return max(1, int(round(frac * self.horizon)))
 
     def rollout_loss(self, batch, horizon: int):
-        hist, future, wrench = batch
+        hist, future, wrench, ref = batch
         m = self.model
         idx = m.idx_modeled
-        pred = m.rollout(hist, wrench[:, :horizon], anchors=future[:, :horizon])
-        err = (pred[:, :, idx] - future[:, :horizon, idx]) / m.a_scale
+        pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon])
+        err = (pred[:, :, idx] - future[:, :horizon, idx]) / m.a_scale.mean()
         return err.pow(2).mean(), pred
 
+    def noisy(self, batch):
+        """Training noise: a random walk (std ``noise`` x the node's step scale per frame) added to the
+        modelled nodes' history, so that the model learns to correct its own rollout errors."""
+        if self.noise <= 0:
+            return batch
+        hist = batch[0]
+        idx = self.model.idx_modeled
+        walk = (torch.randn_like(hist[:, :, idx]) * self.noise * self.model.v_scale).cumsum(1)
+        return (hist.index_add(2, idx, walk), *batch[1:])
+
     def training_step(self, batch, batch_idx):
-        loss, _ = self.rollout_loss(batch, self.current_horizon())
+        loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon())
         self.log("train_loss", loss, prog_bar=True, on_epoch=True, on_step=False)
         self.log("horizon", float(self.current_horizon()), on_epoch=True, on_step=False)
         return loss
 
     def validation_step(self, batch, batch_idx):
         loss, pred = self.rollout_loss(batch, self.horizon)
-        hist, future, _ = batch
+        future = batch[1]
         idx = self.model.idx_modeled
         mm = (pred[:, :, idx] - future[:, :self.horizon, idx]).abs().amax() * 1e3
         self.log("val_loss", loss, prog_bar=True)

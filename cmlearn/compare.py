@@ -1,0 +1,134 @@
+"""``cmlearn compare``: the physics (LGVI) and a shipped surrogate on the same scene.
+
+Runs both from the scene's initial state, prints per-axis maximum/mean absolute errors of the
+nodes of interest (mm and % of rod length), an RMSE(t) summary, the wall time of each and the
+speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summary.json``.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from .io import atomic_write
+
+__all__ = ["DEFAULT_COMPARE_SCENE", "task_for_scene", "find_checkpoint", "compare_scene", "run_compare"]
+
+DEFAULT_COMPARE_SCENE = "semicircle_heldout"
+
+
+def task_for_scene(name: str):
+    """The surrogate task whose printed or held-out scene is ``name``."""
+    from .data.tasks import TASKS
+    for task in TASKS.values():
+        if name == task.scene or name in task.heldout:
+            return task
+    valid = sorted({t.scene for t in TASKS.values()} | {h for t in TASKS.values() for h in t.heldout})
+    raise KeyError(f"no shipped surrogate covers scene {name!r}; valid: {valid}")
+
+
+def find_checkpoint(task_name: str, explicit: str | Path | None = None) -> Path:
+    if explicit:
+        return Path(explicit)
+    for root in (Path.cwd(), Path(__file__).resolve().parents[1]):
+        p = root / "checkpoints" / f"{task_name}.pt"
+        if p.is_file():
+            return p
+    raise FileNotFoundError(f"no checkpoint for task {task_name!r} in ./checkpoints or the source tree; "
+                            "pass --checkpoint PATH")
+
+
+def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duration: float | None = None) -> dict:
+    import torch
+
+    from .data.generate import scene_rollout
+    from .eval.metrics import axis_errors, rmse_t
+    from .surrogate import Surrogate
+    from .surrogate.evaluate import interest_slots
+
+    task = task_for_scene(scene_name)
+    scene = task.scene_by_name(scene_name)
+    if duration:
+        from dataclasses import replace
+        scene = replace(scene, duration=duration)
+    engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
+    torch.set_num_threads(1)
+    p_ref, _, wall_ref = scene_rollout(task, scene)
+    p_sur, wall_sur = engine.run_scene(scene)
+    slots = interest_slots(task, scene)
+    L = scene.rod.length
+    labels = [lab for n, lab in zip(scene.nodes_of_interest, scene.node_labels) if n in task.tracked]
+    t = torch.arange(p_ref.shape[0]) * task.delta
+    nodes = {}
+    for slot, label in zip(slots, labels):
+        r = rmse_t(p_sur[:, slot], p_ref[:, slot])
+        nodes[label] = {"errors": axis_errors(p_sur[:, slot], p_ref[:, slot], L),
+                        "rmse_mm": {"mean": float(r.mean()) * 1e3, "max": float(r.max()) * 1e3,
+                                    "final": float(r[-1]) * 1e3}}
+    return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
+            "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur,
+            "speedup": wall_ref / wall_sur, "nodes": nodes, "checkpoint_metrics": engine.meta.get("metrics", {}),
+            "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}
+
+
+def _plots(res: dict, out: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .eval.metrics import rmse_t
+
+    s = res["_series"]
+    t, ref, sur, slot = s["t"].numpy(), s["ref"], s["sur"], s["slots"][0]
+    paths = [out / "positions.png", out / "rmse.png", out / "shapes.png"]
+    fig, axes = plt.subplots(3, 1, figsize=(7, 6), sharex=True)
+    for i, ax in enumerate(axes):
+        ax.plot(t, ref[:, slot, i].numpy() * 1e3, "k-", label="LGVI (physics)")
+        ax.plot(t, sur[:, slot, i].numpy() * 1e3, "r--", label="LSTM surrogate")
+        ax.set_ylabel(f"{'xyz'[i]} (mm)")
+    axes[0].set_title(f"{res['scene']}: {s['labels'][0]}")
+    axes[0].legend(loc="best")
+    axes[-1].set_xlabel("t (s)")
+    fig.tight_layout()
+    atomic_write(paths[0], lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(7, 3))
+    for j, lab in zip(s["slots"], s["labels"]):
+        ax.plot(t, rmse_t(sur[:, j], ref[:, j]).numpy() * 1e3, label=lab)
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("RMSE(t) (mm)")
+    ax.legend(loc="best")
+    fig.tight_layout()
+    atomic_write(paths[1], lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+    fig = plt.figure(figsize=(6, 5))
+    ax = fig.add_subplot(projection="3d")
+    for k in range(0, len(t), max(1, len(t) // 5)):
+        ax.plot(*ref[k].T.numpy(), "k-", lw=1)
+        ax.plot(*sur[k].T.numpy(), "r--", lw=1)
+    ax.set_title("tracked nodes: LGVI (black) and surrogate (red)")
+    atomic_write(paths[2], lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+    return paths
+
+
+def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = None) -> dict:
+    t0 = time.perf_counter()
+    res = compare_scene(scene, checkpoint, duration)
+    out = Path(out or f"out/compare_{res['scene']}")
+    print(f"{res['scene']}: {res['duration_s']:.2f} s simulated, surrogate step {res['surrogate_step_s'] * 1e3:.0f} ms, "
+          f"rod length {res['rod_length_m'] * 1e3:.0f} mm")
+    for label, node in res["nodes"].items():
+        e = node["errors"]
+        print(f"  {label}: " + "  ".join(f"{ax} max {e[ax]['max_mm']:.2f} mm ({e[ax]['max_pct_L']:.2f} % L), "
+                                        f"mean {e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
+        r = node["rmse_mm"]
+        print(f"    RMSE(t): mean {r['mean']:.2f} mm, max {r['max']:.2f} mm, final {r['final']:.2f} mm")
+    print(f"  wall time: LGVI {res['lgvi_wall_s']:.2f} s, surrogate {res['surrogate_wall_s']:.3f} s, "
+          f"speed-up {res['speedup']:.0f}x")
+    paths = _plots(res, out)
+    summary = {k: v for k, v in res.items() if not k.startswith("_")}
+    js = out / "summary.json"
+    atomic_write(js, lambda f: f.write(json.dumps(summary, indent=2).encode()))
+    print(f"  wrote {', '.join(str(p) for p in paths + [js])} ({time.perf_counter() - t0:.1f} s)")
+    return summary

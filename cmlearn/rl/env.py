@@ -1,0 +1,345 @@
+"""Gymnasium environment of Chapter 4.1: a UR5 carries a block magnet 10 cm above a table and
+steers a 5 mm magnetic sphere through an intestine-like map, seeing only its camera.
+
+Interface (thesis lines 700-735):
+
+* Observation ``uint8 (2, 84, 84)``. Channel 0: the grayscale end-effector camera view, looked up
+  in an image atlas rendered with pybullet on the map's 1 cm grid (:mod:`cmlearn.rl.atlas`).
+  Channel 1: two 42x84 halves, the top one marking the goal, the bottom one the end-effector,
+  each as a 3x3 block of 255 at the position scaled from the map's extent to 42 rows x 84
+  columns (row 0 = largest y), zeros elsewhere.
+* Actions ``Discrete(4)``: move the end-effector by ``action_step`` (1 cm) in +x, -x, +y, -y.
+* One step is one control period (``control_period`` = 0.1 s): IK for the new set-point, the
+  particle simulated under the moving magnet (:mod:`cmlearn.rl.particle`), then disturbances and
+  the switching controller (:mod:`cmlearn.rl.switching`): when the particle is farther than 10 cm,
+  Sub-controller 1 runs (inside the same ``step``) until it is recaptured; those periods are
+  counted in ``info["sc1_steps"]`` and recorded in ``env.trajectory`` but not in ``max_steps``.
+* Termination (reward ``reward_failure`` = -1): no IK solution (``"ik_failure"``), the particle
+  touching a wall (``"collision"``), the obstacle rule -- mean of the central 15x15 pixels of the
+  camera view < 150 while Sub-controller 2 acts (``"obstacle"``) --, or no recapture within
+  ``sc1_max_steps`` (``"recapture_failed"``). Truncation after ``max_steps`` (150) decisions
+  (``"max_steps"``, also -1, as the thesis ends such an episode with a negative reward). Success
+  (``reward_success`` = +1): the particle within ``goal_radius`` (2 cm) of the goal.
+* Shaping (documented, optional): ``-step_penalty`` per decision plus the potential-based term
+  ``shaping * (g_prev - g_new) / action_step`` with ``g`` the free-space (geodesic, 4-neighbour
+  grid) distance of the particle to the goal; potential-based shaping does not change the
+  optimal policy (Ng, Harada & Russell 1999). ``shaping=0, step_penalty=0`` gives the thesis's
+  sparse reward.
+* Disturbances (:class:`DisturbanceConfig`): with a given probability per decision (or at given
+  steps), the particle is dragged ``magnitude`` metres (uniform in the range) in a random
+  direction along a straight line inside the free space to a spot connected to the goal, as when
+  the experimenter drew it away; at most ``max_count`` per episode, not before ``min_step``.
+
+All randomness flows from ``reset(seed=...)`` (``self.np_random``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from .atlas import Atlas, default_cache_dir
+from .camera import CameraSpec
+from .maps import Map, load_map, map_seeds, procedural_map
+from .particle import ParticleParams, ParticleSim
+from .switching import SubController1, SwitchingConfig, SwitchingLaw
+from .ur5 import UR5, IKError
+
+__all__ = ["EnvConfig", "DisturbanceConfig", "MagneticParticleEnv", "ACTIONS"]
+
+ACTIONS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))  # +x, -x, +y, -y
+
+
+@dataclass(frozen=True)
+class DisturbanceConfig:
+    probability: float = 0.0
+    magnitude: tuple[float, float] = (0.06, 0.15)
+    max_count: int = 2
+    min_step: int = 5
+    at_steps: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        if not 0.0 <= self.probability <= 1.0:
+            raise ValueError(f"probability must be in [0, 1], got {self.probability}")
+        if not (0 < self.magnitude[0] <= self.magnitude[1]):
+            raise ValueError(f"magnitude must be (min, max) with 0 < min <= max (m), got {self.magnitude}")
+
+    @property
+    def active(self) -> bool:
+        return self.probability > 0 or bool(self.at_steps)
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    map_seeds: tuple[int, ...] = map_seeds("train", 8)
+    map_path: str | None = None
+    map_size: tuple[float, float] = (0.4, 0.4)
+    map_resolution: float = 0.002
+    action_step: float = 0.01
+    control_period: float = 0.1
+    max_steps: int = 150
+    goal_radius: float = 0.02
+    obstacle_threshold: float = 150.0
+    obstacle_window: int = 15
+    min_start_goal_distance: float = 0.1
+    reward_success: float = 1.0
+    reward_failure: float = -1.0
+    step_penalty: float = 0.01
+    shaping: float = 0.05
+    sc1_max_steps: int = 100
+    tool_length: float = 0.06
+    atlas_cache: str | None = "default"
+    disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+    switching: SwitchingConfig | None = field(default_factory=SwitchingConfig)
+    particle: ParticleParams = field(default_factory=ParticleParams)
+    camera: CameraSpec = field(default_factory=CameraSpec)
+
+    def __post_init__(self):
+        for name in ("action_step", "control_period", "goal_radius", "map_resolution"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {v}")
+        if int(self.max_steps) < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if not (0 < self.obstacle_window <= self.camera.size):
+            raise ValueError(f"obstacle_window must be in [1, {self.camera.size}], got {self.obstacle_window}")
+        if not self.map_seeds and self.map_path is None:
+            raise ValueError("map_seeds is empty and map_path is None: the environment has no map")
+
+
+_MAPS: dict = {}
+_ATLASES: dict = {}
+
+
+def _cached_map(cfg: EnvConfig, seed: int | None) -> Map:
+    key = (seed, cfg.map_path, cfg.map_size, cfg.map_resolution)
+    if key not in _MAPS:
+        _MAPS[key] = (load_map(cfg.map_path, cfg.map_resolution) if seed is None else
+                      procedural_map(seed, cfg.map_size, cfg.map_resolution))
+    return _MAPS[key]
+
+
+def _cached_atlas(map_: Map, cfg: EnvConfig) -> Atlas:
+    cache = None if cfg.atlas_cache is None else (default_cache_dir() if cfg.atlas_cache == "default"
+                                                  else cfg.atlas_cache)
+    key = (id(map_), cfg.camera, str(cache))
+    if key not in _ATLASES or _ATLASES[key][0] is not map_:
+        _ATLASES[key] = (map_, Atlas(map_, cfg.camera, cache))
+    return _ATLASES[key][1]
+
+
+class MagneticParticleEnv(gym.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, config: EnvConfig | None = None, maps: list[Map] | None = None, render_mode=None, **overrides):
+        cfg = config or EnvConfig()
+        names = {f.name for f in fields(EnvConfig)}
+        bad = sorted(set(overrides) - names)
+        if bad:
+            raise TypeError(f"unknown EnvConfig field(s) {bad}; valid: {sorted(names)}")
+        self.config = cfg = replace(cfg, **overrides) if overrides else cfg
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        self._maps = list(maps) if maps else None
+        if self._maps is not None and not all(isinstance(m, Map) for m in self._maps):
+            raise TypeError("maps must be a list of cmlearn.rl.maps.Map")
+        n = cfg.camera.size
+        self.observation_space = spaces.Box(0, 255, (2, n, n), np.uint8)
+        self.action_space = spaces.Discrete(4)
+        self.robot = UR5(cfg.tool_length)
+        self.sim = ParticleSim(cfg.particle)
+        self.height = cfg.particle.magnet_height
+        self.radius = cfg.particle.particle_diameter / 2
+        self.law = SwitchingLaw(cfg.switching) if cfg.switching else None
+        self.sc1 = SubController1(cfg.switching) if cfg.switching else None
+        start = (n - cfg.obstacle_window) // 2
+        self._win = slice(start, start + cfg.obstacle_window)
+        self._wall = lambda x, y: self.map.touches_wall(x, y, self.radius)
+        self.map = None
+        self._done = True
+        self.trajectory: list[tuple[float, float, float, float, int]] = []
+
+    # ------------------------------------------------------------------ maps
+    def map_count(self) -> int:
+        return len(self._maps) if self._maps is not None else (len(self.config.map_seeds) or 1)
+
+    def get_map(self, index: int) -> Map:
+        if self._maps is not None:
+            return self._maps[index]
+        seeds = self.config.map_seeds
+        return _cached_map(self.config, seeds[index] if seeds else None)
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        rng = self.np_random
+        idx = options.get("map_index", int(rng.integers(self.map_count())))
+        if not 0 <= idx < self.map_count():
+            raise ValueError(f"options['map_index'] must be in [0, {self.map_count()}), got {idx}")
+        self.map = self.get_map(idx)
+        self.atlas = _cached_atlas(self.map, self.config)
+        m = self.map
+        if "start" in options or "goal" in options:
+            start = m.check_point("start", options["start"]) if "start" in options else None
+            goal = m.check_point("goal", options["goal"]) if "goal" in options else None
+            if start is None or goal is None:
+                s, g = m.sample_start_goal(rng, self.config.min_start_goal_distance)
+                start, goal = start or s, goal or g
+            m.check_reachable(start, goal)
+            self._place(m.node_xy(*start), user=True)
+        else:
+            for _ in range(50):
+                start, goal = m.sample_start_goal(rng, self.config.min_start_goal_distance)
+                if self._place(m.node_xy(*start), user=False) and self.robot.reachable([*m.node_xy(*goal), self.height]):
+                    break
+            else:
+                raise ValueError(f"map {m.name!r}: no start/goal pair reachable by the UR5 (check the map origin)")
+        self.goal_node, self.goal_xy = goal, m.node_xy(*goal)
+        self.start_xy = self.ee
+        self._geo = m.geodesic(goal, "free")
+        self._g = self._geodist()
+        self.steps = self.sc1_steps = self.disturbances = 0
+        self.controller, self.reason, self._done = 2, "running", False
+        if self.law:
+            self.law.reset()
+            self.sc1.reset()
+        self.trajectory = [(*self.ee, *self.sim.position, 2)]
+        return self._obs(), self._info()
+
+    def _place(self, xy, user: bool) -> bool:
+        try:
+            self.q = self.robot.ik([xy[0], xy[1], self.height])
+        except IKError as e:
+            if user:
+                raise ValueError(f"start={list(xy)} is not reachable by the UR5: {e}") from None
+            return False
+        self.ee = (float(xy[0]), float(xy[1]))
+        self.sim.reset(*xy)
+        return True
+
+    def step(self, action):
+        if self._done:
+            raise RuntimeError("step() called after the episode ended; call reset() first")
+        if isinstance(action, np.ndarray) and action.shape == ():
+            action = action.item()
+        if isinstance(action, bool) or not isinstance(action, (int, np.integer)) or not 0 <= int(action) < 4:
+            raise ValueError(f"action must be an int in [0, 4) (+x, -x, +y, -y), got {action!r}")
+        cfg, m = self.config, self.map
+        dx, dy = ACTIONS[int(action)]
+        self.controller = 2
+        self.reason = self._move((self.ee[0] + dx * cfg.action_step, self.ee[1] + dy * cfg.action_step), 2)
+        self.steps += 1
+        view = self.atlas.view(*self.ee)
+        if self.reason == "running" and float(view[self._win, self._win].mean()) < cfg.obstacle_threshold:
+            self.reason = "obstacle"
+        if self.reason == "running":
+            self._maybe_disturb()
+            if self.law is not None and self.law(self.ee, self.sim.position) == 1:
+                self._recapture()
+        if self.reason == "running" and math.dist(self.sim.position, self.goal_xy) < cfg.goal_radius:
+            self.reason = "success"
+        truncated = self.reason == "running" and self.steps >= cfg.max_steps
+        if truncated:
+            self.reason = "max_steps"
+        terminated = self.reason not in ("running", "max_steps")
+        g = self._geodist()
+        reward = -cfg.step_penalty + cfg.shaping * (self._g - g) / cfg.action_step
+        self._g = g
+        if self.reason == "success":
+            reward += cfg.reward_success
+        elif terminated or truncated:
+            reward += cfg.reward_failure
+        self._done = terminated or truncated
+        return self._obs(view), float(reward), terminated, truncated, self._info()
+
+    # ------------------------------------------------------------------ internals
+    def _move(self, target, controller: int) -> str:
+        """Move the end-effector to ``target`` over one control period; returns the outcome."""
+        try:
+            self.q = self.robot.ik([target[0], target[1], self.height], self.q)
+        except IKError:
+            return "ik_failure"
+        hit = self.sim.advance(self.ee, target, self.config.control_period, self._wall)
+        self.ee = (float(target[0]), float(target[1]))
+        self.trajectory.append((*self.ee, *self.sim.position, controller))
+        return "collision" if hit else "running"
+
+    def _recapture(self):
+        self.controller = 1
+        for _ in range(self.config.sc1_max_steps):
+            target = self.sc1(self.ee, self.sim.position, self.config.control_period)
+            self.sc1_steps += 1
+            self.reason = self._move(target, 1)
+            if self.reason != "running" or self.law(self.ee, self.sim.position) == 2:
+                return
+        self.reason = "recapture_failed"
+
+    def _maybe_disturb(self):
+        d = self.config.disturbance
+        if not d.active or self.disturbances >= d.max_count or self.steps < d.min_step:
+            return
+        rng = self.np_random
+        if not (self.steps in d.at_steps or (d.probability > 0 and rng.random() < d.probability)):
+            return
+        m, (px, py) = self.map, self.sim.position
+        for _ in range(30):
+            r, th = rng.uniform(*d.magnitude), rng.uniform(0, 2 * math.pi)
+            x, y = px + r * math.cos(th), py + r * math.sin(th)
+            if m.clearance_at(x, y) < m.clearance or not np.isfinite(self._geo[m.nearest_node(x, y)]):
+                continue
+            k = max(2, int(r / 0.002))  # dragged along a straight line inside the free space
+            if all(m.clearance_at(px + (x - px) * t / k, py + (y - py) * t / k) >= self.radius for t in range(k + 1)):
+                self.sim.reset(x, y)
+                self.disturbances += 1
+                self.trajectory.append((*self.ee, x, y, 0))
+                return
+
+    def _geodist(self) -> float:
+        g = float(self._geo[self.map.nearest_node(*self.sim.position)])
+        return g if math.isfinite(g) else getattr(self, "_g", 0.0)
+
+    def _obs(self, view=None) -> np.ndarray:
+        n = self.config.camera.size
+        obs = np.zeros((2, n, n), dtype=np.uint8)
+        obs[0] = self.atlas.view(*self.ee) if view is None else view
+        h = n // 2
+        for row0, (x, y) in ((0, self.goal_xy), (h, self.ee)):
+            r, c = self._marker(x, y, h, n)
+            obs[1, row0 + max(r - 1, 0):row0 + min(r + 2, h), max(c - 1, 0):c + 2] = 255
+        return obs
+
+    def _marker(self, x, y, rows, cols) -> tuple[int, int]:
+        m = self.map
+        W, H = m.size
+        u = min(max((x - m.origin[0]) / W, 0.0), 1.0)
+        v = min(max((m.origin[1] + H - y) / H, 0.0), 1.0)
+        return int(round(v * (rows - 1))), int(round(u * (cols - 1)))
+
+    def _info(self) -> dict:
+        m = self.map
+        return {"ee_xy": self.ee, "particle_xy": self.sim.position, "goal_xy": self.goal_xy,
+                "view_xy": self.map.node_xy(*self.map.nearest_node(*self.ee)), "reason": self.reason,
+                "steps": self.steps, "sc1_steps": self.sc1_steps, "disturbances": self.disturbances,
+                "controller": self.controller, "map": self.map.name,
+                "bounds": (m.origin[0], m.origin[1], m.origin[0] + m.size[0], m.origin[1] + m.size[1])}
+
+    def obstacle_detected(self, view: np.ndarray) -> bool:
+        """The thesis's rule: mean of the central window of a camera view below the threshold."""
+        return float(np.asarray(view)[self._win, self._win].mean()) < self.config.obstacle_threshold
+
+    def render(self):
+        if self.render_mode != "rgb_array" or self.map is None:
+            return None
+        img = np.repeat(self.map.image[:, :, None], 3, axis=2).copy()
+        for (x, y), color in ((self.goal_xy, (0, 200, 0)), (self.ee, (0, 0, 255)), (self.sim.position, (255, 0, 0))):
+            r, c = self.map.to_pixel(x, y)
+            img[max(r - 3, 0):r + 4, max(c - 3, 0):c + 4] = color
+        return img
+
+    def close(self):
+        self.robot.close()

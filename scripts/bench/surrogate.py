@@ -1,0 +1,79 @@
+"""Benchmark: batch-1 surrogate step latency against the LGVI step on the same scene, same run.
+
+    python scripts/bench/surrogate.py [--quick] [--task semicircle] [--checkpoint PATH] [--compile]
+
+Reports the surrogate's steps per second at batch 1 (eager and, with ``--compile``, compiled; the
+compile time separately), the LGVI's steps per second on the task's scene (eager, float64), the
+wall time per simulated second of each and their ratio, and the errors of a short free-running
+rollout against the LGVI. Last line: one JSON object.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+
+import torch
+
+from cmlearn.compare import find_checkpoint
+from cmlearn.data import get_task, scene_rollout
+from cmlearn.surrogate import Surrogate
+from cmlearn.surrogate.evaluate import short_check
+
+
+@dataclass
+class Args:
+    task: str = "semicircle"
+    checkpoint: str = ""
+    quick: bool = False
+    compile: bool = False
+    threads: int = 1
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", default="semicircle")
+    ap.add_argument("--checkpoint", default="")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--compile", action="store_true")
+    ap.add_argument("--threads", type=int, default=1)
+    a = Args(**vars(ap.parse_args(argv)))
+    torch.set_num_threads(a.threads)
+    task = get_task(a.task)
+    engine = Surrogate.load(find_checkpoint(task.name, a.checkpoint or None), task=task.name)
+    n = 300 if a.quick else 3000
+    step_s = engine.step_latency(n=n)
+    res = {"surrogate_step_hz": 1 / step_s, "surrogate_step_us": step_s * 1e6}
+    if a.compile:
+        t0 = time.perf_counter()
+        engine.compile()
+        engine.step_latency(n=5, warmup=1)
+        res["compile_s"] = time.perf_counter() - t0
+        res["surrogate_step_hz_compiled"] = 1 / engine.step_latency(n=n)
+    scene = task.base_scene()
+    dur = 0.2 if a.quick else 1.0
+    short = replace(scene, duration=dur)
+    _, _, lgvi_wall = scene_rollout(task, short)
+    lgvi_steps = int(round(dur / scene.dt))
+    sur_per_sim_s = step_s / task.delta
+    lgvi_per_sim_s = lgvi_wall / dur
+    check = short_check(engine, task.scene, dur)
+    res.update({
+        "lgvi_step_hz": lgvi_steps / lgvi_wall, "lgvi_wall_per_sim_s": lgvi_per_sim_s,
+        "surrogate_wall_per_sim_s": sur_per_sim_s, "speedup_per_simulated_second": lgvi_per_sim_s / sur_per_sim_s,
+        "quick_rollout_max_err_mm": check["max_err_mm"], "quick_rollout_s": dur,
+        "surrogate_delta_s": task.delta, "lgvi_dt_s": scene.dt, "n_tracked": len(task.tracked),
+        "n_modeled": len(task.modeled), "lgvi_nodes": scene.rod.n_nodes, "batch": 1, "threads": a.threads,
+        "dtype_surrogate": "float32", "dtype_lgvi": "float64", "device": "cpu", "args": asdict(a)})
+    print(f"{task.name}: surrogate {res['surrogate_step_hz']:.0f} steps/s at batch 1 ({step_s * 1e6:.0f} us), "
+          f"LGVI {res['lgvi_step_hz']:.0f} steps/s on {scene.rod.n_nodes} nodes")
+    print(f"  wall per simulated second: LGVI {lgvi_per_sim_s:.2f} s, surrogate {sur_per_sim_s * 1e3:.2f} ms "
+          f"-> {res['speedup_per_simulated_second']:.0f}x")
+    print(f"  free-running error over {dur} s of {task.scene}: {check['max_err_mm']:.2f} mm")
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,187 @@
+"""LSTM node surrogates: data, model, training, checkpoints, rollout engine, shipped weights."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from cmlearn.data import generate_dataset, get_task, load_dataset
+from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
+from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
+from cmlearn.surrogate import CheckpointError, Surrogate, load_checkpoint, save_checkpoint
+from cmlearn.surrogate.evaluate import free_running, one_step, short_check
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = sorted((ROOT / "checkpoints").glob("*.pt"))
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Three variants of Simulation III for 0.3 s (the printed pulse and two random ones)."""
+    path = tmp_path_factory.mktemp("data") / "semi.pt"
+    generate_dataset("semicircle", 3, seed=1, out=path, duration=0.3)
+    return load_dataset(path, task="semicircle")
+
+
+def tiny_model(task, eta=2, hidden=16):
+    return NodeLSTMSurrogate(NodeLSTMConfig.chain(task.tracked, task.modeled, eta=eta, hidden=hidden))
+
+
+def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
+    meta = tiny["meta"]
+    task = get_task("semicircle")
+    V, T, N, _ = tiny["positions"].shape
+    assert (V, T, N) == (3, 31, len(task.tracked)) and tiny["wrench"].shape == (3, 30, 1, 3)
+    assert meta["seed"] == 1 and meta["scene"] == "semicircle" and len(meta["variants"]) == 3
+    # anchors stay clamped; the printed pulse is 20 mN along -y on node 51 for the whole 0.3 s
+    anchors = [task.tracked.index(a) for a in task.anchors]
+    assert torch.allclose(tiny["positions"][:, :, anchors], tiny["positions"][:, :1, anchors])
+    assert torch.allclose(tiny["wrench"][0, :, 0], torch.tensor([0.0, -0.02, 0.0]))
+    mid = task.tracked.index(50)
+    assert float(tiny["positions"][0, -1, mid, 1] - tiny["positions"][0, 0, mid, 1]) < -1e-4  # pushed down
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a dataset")
+    with pytest.raises(ValueError, match="not a readable"):
+        load_dataset(bad)
+    torch.save({**tiny, "positions": tiny["positions"] + 1e-3}, tmp_path / "tampered.pt")
+    with pytest.raises(ValueError, match="hash"):
+        load_dataset(tmp_path / "tampered.pt")
+    with pytest.raises(ValueError, match="task"):
+        load_dataset(tmp_path / "tampered.pt", task="ellipse")
+
+
+def test_windows_and_splits(tiny):
+    meta = tiny["meta"]
+    wr = node_wrench(tiny["wrench"], meta["wrench_nodes"], meta["modeled"])
+    assert wr.shape[-2] == len(meta["modeled"])
+    ranges = split_ranges(3, 31, val_variants=1)
+    assert ranges["train"] == [(0, 0, 18), (1, 0, 30)] and ranges["val"] == [(2, 0, 30)]
+    ds = RolloutWindows(tiny["positions"], wr, ranges["train"], eta=2, horizon=4)
+    hist, fut, w, ref = ds[0]
+    assert hist.shape == (3, 20 + 2, 3) and fut.shape == (4, 22, 3) and w.shape == (4, 20, 3)
+    assert torch.equal(hist[-1], tiny["positions"][0, 2]) and torch.equal(fut[0], tiny["positions"][0, 3])
+    assert torch.equal(ref, tiny["positions"][0, 0])
+
+
+def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
+    task = get_task("semicircle")
+    model = tiny_model(task).eval()
+    pos = tiny["positions"][0]
+    wr = node_wrench(tiny["wrench"][0], task.wrench_nodes, task.modeled)
+    # a fresh model outputs a zero second difference: p(t+1) = 2 p(t) - p(t-1)
+    pred = one_step(model, pos, wr, 5)
+    idx = model.idx_modeled
+    assert torch.allclose(pred[0, idx], 2 * pos[5, idx] - pos[4, idx], atol=1e-7)  # frame 6 from 3, 4, 5
+    torch.manual_seed(0)
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    engine = Surrogate(model, {"task": "semicircle"})
+    from dataclasses import replace
+    scene = replace(task.base_scene(), duration=0.1)
+    rolled, _ = engine.run_scene(scene)
+    W = engine.scene_wrench(scene, 10)
+    hist = rolled[:1].expand(3, -1, -1)[None]
+    direct = model.rollout(hist, W[None], rolled[:1])[0]
+    assert torch.allclose(rolled[1:], direct, atol=1e-6)
+    fr = free_running(model, torch.cat([rolled[:1].expand(2, -1, -1), rolled]), torch.cat([torch.zeros(2, *W.shape[1:]), W]), 2)
+    assert torch.allclose(fr, rolled[1:], atol=1e-6)
+
+
+def test_small_training_run_reduces_the_loss(tiny):
+    L = pytest.importorskip("lightning")
+    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
+    torch.manual_seed(0)
+    task = get_task("semicircle")
+    dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=16)
+    model = tiny_model(task)
+    model.set_scales(dm.train_positions(), dm.wrench, 0.6)
+    module = SurrogateModule(model, horizon=4, warmup_epochs=1, lr=5e-3, max_epochs=20)
+    batches = list(dm._loader("train", shuffle=False))
+
+    def train_loss():
+        with torch.no_grad():
+            return sum(float(module.rollout_loss(b, 4)[0]) * len(b[0]) for b in batches) / sum(len(b[0]) for b in batches)
+
+    before = train_loss()
+    trainer = L.Trainer(max_epochs=20, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0)
+    trainer.fit(module, datamodule=dm)
+    after = train_loss()
+    assert after < 0.8 * before
+
+
+def test_checkpoint_round_trip_and_clear_errors(tmp_path):
+    task = get_task("semicircle")
+    model = tiny_model(task)
+    for prm in model.head[-1].parameters():
+        prm.data.fill_(0.01)
+    path = save_checkpoint(tmp_path / "m.pt", model, {"task": "semicircle", "metrics": {}})
+    assert json.loads(path.with_suffix(".json").read_text())["task"] == "semicircle"
+    loaded, meta = load_checkpoint(path, task="semicircle")
+    hist = torch.randn(1, 3, len(task.tracked), 3) * 0.01
+    w = torch.zeros(1, len(task.modeled), 3)
+    assert torch.equal(loaded(hist, w, hist[:, 0]), model.eval()(hist, w, hist[:, 0]))
+    with pytest.raises(CheckpointError, match="not 'ellipse'"):
+        load_checkpoint(path, task="ellipse")
+    (tmp_path / "corrupt.pt").write_bytes(path.read_bytes()[:200])
+    with pytest.raises(CheckpointError, match="not a readable"):
+        load_checkpoint(tmp_path / "corrupt.pt")
+    with pytest.raises(CheckpointError, match="no such"):
+        load_checkpoint(tmp_path / "missing.pt")
+    torch.save({"format": "something-else"}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not a cmlearn-surrogate"):
+        load_checkpoint(tmp_path / "other.pt")
+
+
+def test_loading_a_checkpoint_needs_no_lightning(tmp_path):
+    task = get_task("semicircle")
+    path = save_checkpoint(tmp_path / "m.pt", tiny_model(task), {"task": "semicircle"})
+    code = (f"import sys; from cmlearn.surrogate import Surrogate; Surrogate.load({str(path)!r}); "
+            "print('lightning' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr[-1000:]
+    assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_shipped_checkpoints_exist_and_reproduce_their_recorded_check():
+    assert SHIPPED, "no shipped checkpoints in checkpoints/"
+    for path in SHIPPED:
+        assert path.stat().st_size < 3e6
+        engine = Surrogate.load(path)
+        meta = engine.meta
+        for key in ("architecture", "task", "scene", "data_hash", "metrics", "command", "check"):
+            assert key in meta, (path.name, key)
+        chk = meta["check"]
+        got = short_check(engine, chk["scene"], chk["duration"])
+        assert got["max_err_mm"] == pytest.approx(chk["max_err_mm"], rel=1e-3, abs=1e-3), path.name
+
+
+def test_compare_command_runs_physics_and_surrogate(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "cmlearn", "compare", "--scene", "semicircle", "--duration", "0.2",
+                          "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["speedup"] > 1 and summary["duration_s"] == pytest.approx(0.2)
+    node = next(iter(summary["nodes"].values()))
+    assert set(node["errors"]) == {"x", "y", "z"} and node["rmse_mm"]["max"] >= 0
+    assert all((tmp_path / f).stat().st_size > 0 for f in ("positions.png", "rmse.png", "shapes.png"))
+    assert "speed-up" in out.stdout
+    bad = subprocess.run([sys.executable, "-m", "cmlearn", "compare", "--scene", "no_such_scene"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert bad.returncode == 2 and "no_such_scene" in bad.stderr
+
+
+def test_notebook_executes_on_a_short_case(monkeypatch):
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    monkeypatch.setenv("CMLEARN_NOTEBOOK_QUICK", "1")
+    nb = nbformat.read(ROOT / "notebooks" / "surrogate_vs_physics.ipynb", as_version=4)
+    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                            resources={"metadata": {"path": str(ROOT / "notebooks")}}).execute()
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert any("speed-up" in str(o.get("data", {})) for o in outputs)
