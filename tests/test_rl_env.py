@@ -1,0 +1,230 @@
+"""The magnetic-particle environment on hand-built maps: observation, obstacle rule, termination and
+rewards, disturbances and the switching controller, determinism, checkers and bad input."""
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pybullet")
+pytest.importorskip("gymnasium")
+import gymnasium as gym  # noqa: E402
+
+import cmlearn.rl as rl  # noqa: E402
+from cmlearn.rl import DisturbanceConfig, Map, MagneticParticleEnv, load_map, procedural_map  # noqa: E402
+from cmlearn.rl.atlas import Atlas  # noqa: E402
+
+FREE, WALL = 235, 20
+
+
+def corridor(origin=(-0.1, 0.40), length=0.2, width=0.05, height=0.1, res=0.002, name="corridor"):
+    """A straight corridor along x, centred in a map of ``length`` x ``height``."""
+    H, W = int(round(height / res)), int(round(length / res))
+    img = np.full((H, W), WALL, np.uint8)
+    y = (H - 0.5 - np.arange(H)) * res
+    img[np.abs(y - height / 2) < width / 2, :] = FREE
+    return Map(img, res, origin, name=name)
+
+
+def open_square(origin=(-0.15, 0.30), size=0.3, res=0.002):
+    n = int(round(size / res))
+    return Map(np.full((n, n), FREE, np.uint8), res, origin, name="square")
+
+
+def make(maps, **kw):
+    kw.setdefault("atlas_cache", None)
+    return MagneticParticleEnv(maps=maps, **kw)
+
+
+def run(env, actions):
+    out = []
+    for a in actions:
+        obs, r, term, trunc, info = env.step(a)
+        out.append((r, term, trunc, info))
+        if term or trunc:
+            break
+    return out
+
+
+def test_observation_layout_and_markers():
+    env = make([corridor()])
+    obs, info = env.reset(seed=0, options={"start": (-0.055, 0.445), "goal": (0.045, 0.445)})
+    assert obs.shape == (2, 84, 84) and obs.dtype == np.uint8 and env.observation_space.contains(obs)
+    top, bottom = obs[1, :42], obs[1, 42:]
+    assert (top == 255).sum() == 9 and (bottom == 255).sum() == 9
+    (rg, cg), (re, ce) = np.argwhere(top == 255).mean(0), np.argwhere(bottom == 255).mean(0)
+    assert cg > ce and abs(rg - re) < 1e-9  # goal to the right (+x) of the end-effector, same y
+    assert obs[0, 42, 42] > 150 and obs[0, 0, 42] < 50  # corridor in the middle, wall above
+    assert info["ee_xy"] == info["particle_xy"] == pytest.approx((-0.055, 0.445))
+
+
+def test_obstacle_rule_on_views():
+    env = make([corridor()])
+    v = np.full((84, 84), 255, np.uint8)
+    assert not env.obstacle_detected(v)
+    v[34:49, 34:49] = 0
+    assert env.obstacle_detected(v)
+    v = np.full((84, 84), 255, np.uint8)
+    v[34:40, 34:49] = 0  # 6/15 of the window dark: mean 153 >= 150
+    assert not env.obstacle_detected(v)
+    v[34:41, 34:49] = 0  # 7/15: mean 136 < 150
+    assert env.obstacle_detected(v)
+
+
+def test_success_gives_positive_reward():
+    env = make([corridor()])
+    env.reset(seed=0, options={"start": (-0.055, 0.445), "goal": (-0.015, 0.445)})
+    out = run(env, [0] * 10)
+    r, term, trunc, info = out[-1]
+    assert info["reason"] == "success" and term and not trunc
+    assert math.dist(info["particle_xy"], info["goal_xy"]) < 0.02 and r > 0.9
+    assert sum(o[0] for o in out[:-1]) > 0 and all(-0.02 < o[0] < 0.2 for o in out[:-1])  # shaping
+
+
+def test_obstacle_terminates_with_negative_reward():
+    env = make([corridor()])
+    env.reset(seed=0, options={"start": (0.005, 0.445), "goal": (0.045, 0.445)})
+    r, term, trunc, info = run(env, [2] * 10)[-1]  # +y, into the wall
+    assert info["reason"] == "obstacle" and term and r < -0.9
+    assert info["ee_xy"][1] > 0.46
+
+
+def test_particle_into_wall_is_a_collision():
+    env = make([corridor()], obstacle_threshold=0.0)  # camera rule off: the physics decides
+    env.reset(seed=0, options={"start": (0.005, 0.445), "goal": (0.045, 0.445)})
+    r, term, trunc, info = run(env, [2] * 15)[-1]
+    assert info["reason"] == "collision" and term and r < -0.9
+    assert info["particle_xy"][1] > 0.475 - 0.0025 - 1e-9
+
+
+def test_ik_failure_terminates():
+    m = corridor(origin=(0.6, -0.05), length=0.4)
+    env = make([m])
+    env.reset(seed=0, options={"start": (0.705, -0.005), "goal": (0.655, -0.005)})
+    r, term, trunc, info = run(env, [0] * 40)[-1]
+    assert info["reason"] == "ik_failure" and term and r < -0.9
+    assert not env.robot.reachable([info["ee_xy"][0] + 0.01, info["ee_xy"][1], 0.105])
+
+
+def test_max_steps_truncates_with_negative_reward():
+    env = make([corridor()], max_steps=3)
+    env.reset(seed=0, options={"start": (-0.055, 0.445), "goal": (0.045, 0.445)})
+    out = run(env, [0, 1, 0, 1])
+    r, term, trunc, info = out[-1]
+    assert len(out) == 3 and trunc and not term and info["reason"] == "max_steps" and r < -0.9
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(0)
+
+
+def test_disturbance_and_switching_controller_recapture():
+    env = make([open_square()], disturbance=DisturbanceConfig(at_steps=(1,), magnitude=(0.11, 0.12), min_step=0))
+    env.reset(seed=1, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
+    obs, r, term, trunc, info = env.step(3)
+    assert info["disturbances"] == 1 and info["sc1_steps"] > 0 and info["controller"] == 1
+    assert info["reason"] == "running"
+    assert math.dist(info["ee_xy"], info["particle_xy"]) < 0.02  # handed back after recapture
+    traj = np.asarray(env.trajectory)
+    assert (traj[:, 4] == 1).sum() == info["sc1_steps"] and (traj[:, 4] == 0).sum() == 1
+
+
+def test_seeded_determinism():
+    def rollout():
+        env = MagneticParticleEnv(map_seeds=(3, 4), map_size=(0.24, 0.24), atlas_cache=None,
+                                  disturbance=DisturbanceConfig(probability=0.2, magnitude=(0.03, 0.06), min_step=1))
+        obs, info = env.reset(seed=7)
+        rng, out = np.random.default_rng(0), [(obs.copy(), 0.0, info)]
+        for _ in range(25):
+            obs, r, term, trunc, info = env.step(int(rng.integers(4)))
+            out.append((obs.copy(), r, info))
+            if term or trunc:
+                obs, info = env.reset()
+                out.append((obs.copy(), 0.0, info))
+        return out
+    a, b = rollout(), rollout()
+    assert len(a) == len(b)
+    for (oa, ra, ia), (ob, rb, ib) in zip(a, b):
+        assert np.array_equal(oa, ob) and ra == rb and ia == ib
+
+
+def test_gymnasium_checker_registered_id_and_vector_env():
+    from gymnasium.utils.env_checker import check_env
+    env = gym.make(rl.ENV_ID, map_seeds=(0,), map_size=(0.24, 0.24), atlas_cache=None)
+    check_env(env.unwrapped, skip_render_check=True)
+    venv = rl.make_vector_env(2, map_seeds=(0,), map_size=(0.24, 0.24), atlas_cache=None)
+    obs, _ = venv.reset(seed=0)
+    obs, r, term, trunc, _ = venv.step(np.array([0, 2]))
+    assert obs.shape == (2, 2, 84, 84) and r.shape == (2,)
+    venv.close()
+
+
+def test_torchrl_wrapper_and_batched_env_specs():
+    pytest.importorskip("torchrl")
+    from torchrl.envs.utils import check_env_specs
+
+    from cmlearn.rl.torchrl_env import make_batched_env, make_torchrl_env
+    kw = dict(map_seeds=(0,), map_size=(0.24, 0.24), atlas_cache=None)
+    env = make_torchrl_env(**kw)
+    check_env_specs(env, seed=0)
+    td = env.rollout(5)
+    assert td["observation"].shape[-3:] == (2, 84, 84)
+    batched = make_batched_env(2, seed=0, categorical_action_encoding=True, **kw)
+    check_env_specs(batched)
+    assert batched.rollout(3, break_when_any_done=False)["next", "reward"].shape == (2, 3, 1)
+    batched.close()
+
+
+def test_procedural_maps_are_seeded_and_connected():
+    a, b, c = procedural_map(5), procedural_map(5), procedural_map(6)
+    assert np.array_equal(a.image, b.image) and not np.array_equal(a.image, c.image)
+    for m in (a, c):
+        s, g = m.sample_start_goal(np.random.default_rng(0), 0.1)
+        assert np.isfinite(m.geodesic(g, "safe")[s]) and m.geodesic(g, "safe")[s] >= 0.1
+    with pytest.raises(TypeError, match="seed"):
+        procedural_map(1.5)
+    assert rl.map_seeds("train", 3) == (0, 1, 2) and not set(rl.map_seeds("unseen", 50)) & set(rl.map_seeds("train", 50))
+
+
+def test_atlas_cache_is_atomic_and_keyed(tmp_path):
+    m = corridor(length=0.06, height=0.05, width=0.03)
+    atlas = Atlas(m, rl.CameraSpec(), tmp_path).precompute()
+    files = list(tmp_path.iterdir())
+    assert [f.name for f in files] == [atlas.path.name] and atlas.renders == m.nx * m.ny
+    again = Atlas(m, rl.CameraSpec(), tmp_path)
+    assert again.renders == 0 and np.array_equal(again.images, atlas.images)
+    assert Atlas(m, rl.CameraSpec(extent=0.1), tmp_path).key != atlas.key
+    # the rendered view is the map under the camera
+    x, y = m.node_xy(2, 2)
+    r, c = m.to_pixel(x, y)
+    view = atlas.node_view(2, 2)
+    assert view[42, 42] > 200 and view[0, 42] < 50 and view[83, 42] < 50 and m.image[r, c] == FREE
+
+
+def test_bad_inputs(tmp_path):
+    bad = tmp_path / "not_an_image.png"
+    bad.write_text("hello")
+    with pytest.raises(ValueError, match="cannot read a map image"):
+        load_map(bad)
+    with pytest.raises(ValueError, match="cannot read a map image"):
+        load_map(tmp_path / "missing.png")
+    with pytest.raises(ValueError, match="no free cell"):
+        Map(np.full((50, 50), WALL, np.uint8))
+    with pytest.raises(ValueError, match="no free cell"):
+        corridor(width=0.015)  # free pixels, but narrower than the clearance
+    env = make([corridor()])
+    with pytest.raises(ValueError, match="start"):
+        env.reset(seed=0, options={"start": (0.005, 0.49), "goal": (0.045, 0.445)})
+    with pytest.raises(ValueError, match="goal"):
+        env.reset(seed=0, options={"start": (0.005, 0.445), "goal": (0.2, 0.445)})
+    two = corridor().image.copy()
+    two[:, 45:55] = WALL  # a wall across the corridor
+    env2 = make([Map(two, 0.002, (-0.1, 0.40))])
+    with pytest.raises(ValueError, match="not reachable"):
+        env2.reset(seed=0, options={"start": (-0.055, 0.445), "goal": (0.045, 0.445)})
+    env.reset(seed=0)
+    for a in (4, -1, 1.5, "0", None, True):
+        with pytest.raises(ValueError, match="action"):
+            env.step(a)
+    env.step(np.int64(0))
+    with pytest.raises(TypeError, match="unknown EnvConfig"):
+        MagneticParticleEnv(colour="red")
+    with pytest.raises(ValueError, match="probability"):
+        DisturbanceConfig(probability=2.0)

@@ -1,0 +1,51 @@
+"""Smoke runs of the environment benchmark and the controller evaluation with tiny budgets."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+pytest.importorskip("pybullet")
+pytest.importorskip("gymnasium")
+
+
+def run_script(args, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "CMLEARN_CACHE": str(tmp_path / "cache")}
+    out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_bench_env_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/bench/env.py"), "--quick", "--seconds", "0.5"], tmp_path)
+    for key in ("env_steps_per_s", "render_ms_per_image", "atlas_build_s", "device", "threads", "processes"):
+        assert key in res
+    assert res["env_steps_per_s"] > 0 and res["steps"] > 0 and res["processes"] == 1
+    assert list((tmp_path / "cache" / "atlas").glob("atlas_*.npz"))  # the atlas was cached
+
+
+def test_eval_controllers_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1", "--train-maps", "1",
+                      "--unseen-maps", "1", "--out", "ev", "--report", "ev/report.md"], tmp_path)
+    table = res["results"]
+    assert set(table) == {"attractor", "errt"}
+    for rows in table.values():
+        assert set(rows) == {"undisturbed/train", "undisturbed/unseen", "disturbed/train", "disturbed/unseen"}
+        for s in rows.values():
+            assert s["episodes"] == 1 and 0 <= s["ci95"][0] <= s["success_rate"] <= s["ci95"][1] <= 1
+            assert len(s["tracking_error_mean_m"]) == 2 and s["decision_ms"] > 0
+    assert (tmp_path / "ev" / "report.md").exists() and len(list((tmp_path / "ev").glob("*.png"))) == 8
+
+
+def test_wilson_interval():
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        from eval_controllers import wilson
+    finally:
+        sys.path.pop(0)
+    lo, hi = wilson(50, 100)
+    assert abs(lo - 0.4038) < 1e-3 and abs(hi - 0.5962) < 1e-3
+    assert abs(wilson(0, 10)[0]) < 1e-12 and abs(wilson(10, 10)[1] - 1.0) < 1e-12
