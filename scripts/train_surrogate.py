@@ -154,7 +154,7 @@ def main(argv=None):
             "architecture": model.config.to_dict(), "n_parameters": sum(p.numel() for p in model.parameters()),
             "data_hash": data["meta"]["data_hash"], "data_seed": a.seed, "n_variants": a.variants,
             "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
-            "torch": torch.__version__, "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
+            "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
             "data_wall_s": t_data}
     from cmlearn.surrogate import Surrogate
     from cmlearn.surrogate.evaluate import short_check

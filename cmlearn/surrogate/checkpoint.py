@@ -30,6 +30,7 @@ class CheckpointError(ValueError):
 
 def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> Path:
     path = Path(path)
+    meta = json.loads(json.dumps(meta, default=str))  # plain types only: loadable with weights_only=True
     blob = {"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta}
     buf = io.BytesIO()

@@ -17,7 +17,7 @@ from torch import Tensor
 from cmlearn.data.tasks import SurrogateTask, get_task
 from cmlearn.data.windows import node_wrench
 
-from .checkpoint import load_checkpoint
+from .checkpoint import CheckpointError, load_checkpoint
 
 __all__ = ["Surrogate"]
 
@@ -26,6 +26,11 @@ class Surrogate:
     def __init__(self, model, meta: dict):
         self.model, self.meta = model.eval(), meta
         self.task: SurrogateTask = get_task(meta["task"])
+        for key, want in (("delta", self.task.delta), ("tracked", list(self.task.tracked)),
+                          ("modeled", list(self.task.modeled))):
+            if key in meta and meta[key] != want:
+                raise CheckpointError(f"checkpoint for task {meta['task']!r} has {key} = {meta[key]}, but the task "
+                                      f"now defines {want}: retrain it with scripts/train_surrogate.py")
         self._step = model
 
     @classmethod
