@@ -2,13 +2,17 @@
 
 Depends only on torch, numpy and scipy.
 """
+from .cosserat import CosseratRod, MagnetDipole, Segment
+from .cosserat_inverse import FieldFit, fit_uniform_field, tip_angle
+from .cosserat_shooting import CosseratSolver, StaticSolution, solve_static
 from .errors import SolverError
 from .lgvi import LGVI, Boundary, LGVIState, Trajectory, solve_cayley
 from .loads import Loads, UniformField
 from .rod import CircularSection, Magnet, Material, Rod, RodParams, SquareSection, StabilityEstimate
 
 __all__ = [
-    "SolverError", "LGVI", "Boundary", "LGVIState", "Trajectory", "solve_cayley", "Loads", "UniformField",
+    "CosseratRod", "MagnetDipole", "Segment", "FieldFit", "fit_uniform_field", "tip_angle", "CosseratSolver",
+    "StaticSolution", "solve_static", "SolverError", "LGVI", "Boundary", "LGVIState", "Trajectory", "solve_cayley", "Loads", "UniformField",
     "CircularSection", "Magnet", "Material", "Rod", "RodParams", "SquareSection", "StabilityEstimate",
 ]
 __version__ = "0.1.0"

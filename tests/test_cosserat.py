@@ -1,0 +1,284 @@
+"""The static Cosserat rod (Paper II appendix) against analytic solutions, an independent solve_bvp
+elastica, the LGVI at rest, finite differences; batching, warm starts, failures and bad input."""
+import math
+
+import numpy as np
+import pytest
+import scipy.integrate as si
+import torch
+
+from physics import CircularSection, Magnet, Material, Rod, SolverError, UniformField
+from physics.cosserat import CosseratRod, MagnetDipole, Segment
+from physics.cosserat_lanes import lane_step, lane_tables, shoot_lanes
+from physics.cosserat_ode import shoot
+from physics.cosserat_inverse import fit_uniform_field, tip_angle
+from physics.cosserat_shooting import CosseratSolver, solve_static
+from physics.relax import static_equilibrium
+from physics.scene import MU0
+from physics.scenes_cosserat import NDFEB, PMC770, LinearField, paper2_magnetic_rod
+from problems import EI, cantilever_tip_force, cantilever_tip_moment, cantilever_uniform_load_tip, steel_like_rod
+
+D = torch.float64
+G = (0.0, -9.81, 0.0)
+
+
+def uniform(rod: Rod, n_nodes: int = 21, **kw) -> CosseratRod:
+    return CosseratRod.uniform(rod.length, rod.section, rod.material, n_nodes=n_nodes, **kw)
+
+
+def tip_magnet_rod(n_nodes=13, moment=(0.0, 0.0, 2e-3), mass=2e-4, E=2e6):
+    return CosseratRod.uniform(0.06, CircularSection(3e-3), Material(E=E, density=1100.0, nu=0.5), n_nodes=n_nodes,
+                               magnets=(MagnetDipole(0.06, moment, mass=mass),))
+
+
+# ------------------------------------------------------------------------------------ small deflection
+def test_small_deflection_tip_force_and_moment():
+    base = steel_like_rod()
+    rod, L = uniform(base, 13), base.length
+    P, M = 1e-3 * EI(base) / L**2, 1e-3 * EI(base) / L
+    sol = solve_static(rod, tip_force=torch.tensor([[P, 0, 0], [0, 0, 0]], dtype=D),
+                       tip_moment=torch.tensor([[0, 0, 0], [0, M, 0]], dtype=D))
+    assert bool(sol.converged.all()) and sol.p.shape == (2, 13, 3)
+    assert abs(float(sol.tip_position[0, 0]) / cantilever_tip_force(base, P) - 1) < 5e-3
+    assert abs(float(sol.tip_position[1, 0]) / cantilever_tip_moment(base, M) - 1) < 5e-3
+    # the base reaction balances the tip load
+    assert torch.allclose(sol.base_wrench[0, :3], torch.tensor([P, 0, 0], dtype=D), rtol=1e-9, atol=1e-15)
+
+
+def test_self_weight_and_piecewise_stiffness():
+    base = steel_like_rod()
+    q = base.line_mass * 9.81 * 1e-3
+    sol = solve_static(uniform(base, 13), gravity=(0.0, -9.81e-3, 0.0))
+    assert abs(-float(sol.tip_position[1]) / cantilever_uniform_load_tip(base, q) - 1) < 5e-3
+    # two segments of bending stiffness EI and 4 EI under a tip force: delta = P int (L - s)^2 / EI(s) ds
+    L, a = base.length, 0.3 * base.length
+    soft, stiff = base.material, Material(E=4 * base.material.E, density=1000.0, nu=0.3)
+    rod = CosseratRod((Segment(a, base.section, stiff), Segment(L - a, base.section, soft)), n_nodes=13)
+    P = 1e-3 * EI(base) / L**2
+    ref = P / EI(base) * ((L - a) ** 3 / 3 + (L**3 - (L - a) ** 3) / 3 / 4)
+    sol = solve_static(rod, tip_force=(P, 0.0, 0.0))
+    assert abs(float(sol.tip_position[0]) / ref - 1) < 5e-3
+    assert rod.grid.s[4] == pytest.approx(a) and set(rod.grid.step_segment) == {0, 1}
+
+
+# ------------------------------------------------------------------------------------ large deflection
+def elastica_tip(rod: Rod, P: float, tol: float, nodes: int) -> np.ndarray:
+    """Planar Reissner rod (shear and extension included) under a dead tip force P along +x, clamped
+    along +z: x' = cos(th) v1 + sin(th) v3, z' = -sin(th) v1 + cos(th) v3, th' = M/EI, M' = -P z',
+    v1 = P cos(th)/GA, v3 = 1 + P sin(th)/EA; x = z = th = 0 at s = 0, M(L) = 0."""
+    E, A = rod.material.E, rod.section.area
+    GA, ei, L = rod.material.shear_modulus * A, EI(rod), rod.length
+
+    def f(s, y):
+        x, z, th, M = y
+        v1, v3 = P * np.cos(th) / GA, 1 + P * np.sin(th) / (E * A)
+        dz = -np.sin(th) * v1 + np.cos(th) * v3
+        return np.vstack((np.cos(th) * v1 + np.sin(th) * v3, dz, M / ei, -P * dz))
+
+    s = np.linspace(0, L, nodes)
+    guess = np.vstack((0 * s, s, 0 * s, P * (L - s)))
+    sol = si.solve_bvp(f, lambda a, b: np.array([a[0], a[1], a[2], b[3]]), s, guess, tol=tol, max_nodes=200000)
+    assert sol.success, sol.message
+    return sol.sol(L)[:2]
+
+
+def test_large_deflection_elastica_matches_solve_bvp():
+    base = steel_like_rod()
+    L, ei = base.length, EI(base)
+    loads = (1.0, 3.0, 10.0)  # P L^2 / (E I)
+    refs = []
+    for a in loads:
+        r1, r2 = elastica_tip(base, a * ei / L**2, 1e-8, 101), elastica_tip(base, a * ei / L**2, 1e-11, 401)
+        assert np.abs(r1 - r2).max() < 1e-7 * L  # the reference itself is converged
+        refs.append(r2)
+    P = torch.tensor([[a * ei / L**2, 0.0, 0.0] for a in loads], dtype=D)
+    sol = solve_static(uniform(base, 81), tip_force=P, load_steps=4)  # batched, with continuation
+    tips = sol.tip_position[:, [0, 2]].numpy()
+    assert refs[-1][0] > 0.8 * L  # large: the tip swings past 80 % of L sideways
+    assert np.abs(tips - np.array(refs)).max() < 1e-4 * L
+
+
+# ------------------------------------------------------------------------------------ against the LGVI
+def test_static_shape_matches_lgvi_at_rest():
+    mom, B = (0.0, 0.0, 2e-3), (0.0, 0.01, 0.004)
+    mat, sec = Material(E=4e5, density=1100.0, nu=0.5), CircularSection(3e-3)
+    lg = Rod(length=0.06, section=sec, material=mat, n_elements=20, magnets=(Magnet(s=0.06, mass=2e-4, moment=mom),))
+    p0 = torch.zeros(lg.n_nodes, 3, dtype=D)
+    p0[:, 2] = lg.arclength
+    p, _ = static_equilibrium(lg, p0, torch.eye(3, dtype=D).expand(lg.n_nodes, 3, 3).clone(), gravity=G, field=B)
+    sol = solve_static(tip_magnet_rod(41, mom, E=4e5), gravity=G, field=UniformField(torch.tensor(B, dtype=D)),
+                       load_steps=3)
+    assert float(p[-1, 1]) < -0.5 * 0.06  # large deflection
+    s = lg.arclength.numpy()
+    pc = np.stack([np.interp(s, sol.s.numpy(), sol.p[:, i].numpy()) for i in range(3)], -1)
+    assert np.abs(pc - p.numpy()).max() < 5e-3 * 0.06
+
+
+# ------------------------------------------------------------------------------------ batching, Jacobians
+def test_batched_equals_one_by_one_and_jacobian_modes_agree():
+    rod = tip_magnet_rod()
+    Bs = torch.tensor([[0.0, 0.004, 0.001], [0.003, -0.002, 0.0], [0.0, 0.0, -0.005]], dtype=D)
+    F = torch.tensor([[1e-4, 0, 0], [0, 0, 0], [0, -2e-4, 1e-4]], dtype=D)
+    solver = CosseratSolver(rod)
+    batch = solver.solve(field=UniformField(Bs[:, None, :]), tip_force=F, gravity=G)
+    for i in range(3):
+        one = solver.solve(field=UniformField(Bs[i]), tip_force=F[i], gravity=G)
+        assert torch.allclose(batch.y[i], one.y, atol=1e-12, rtol=0)
+        assert int(batch.iterations[i]) == int(one.iterations)
+    jf = CosseratSolver(rod, jacobian="jacfwd").solve(field=UniformField(Bs[:, None, :]), tip_force=F, gravity=G)
+    assert torch.allclose(jf.jacobian, batch.jacobian, atol=1e-10) and torch.allclose(jf.y, batch.y, atol=1e-12)
+
+
+def test_forward_jacobian_matches_finite_differences_with_field_gradient():
+    rod = CosseratRod.uniform(0.05, CircularSection(2e-3), Material(E=2e6, density=1000.0, nu=0.3), n_nodes=13,
+                              magnets=(MagnetDipole(0.03, (0, 0, 0.01), mass=1e-4), MagnetDipole(0.05, (0, 3e-3, 0.01))),
+                              load_points=(0.0, 0.02))
+    Gm = torch.tensor([[0.02, 0.01, 0.0], [0.01, -0.01, 0.0], [0.0, 0.0, -0.01]], dtype=D)
+    fld = LinearField(torch.tensor([0.01, 0.005, -0.003], dtype=D), Gm)
+    s = CosseratSolver(rod)
+    L = s.make_loads(gravity=G, tip_force=(1e-3, 2e-4, 0), point_forces=[[1e-4, 0, 0], [0, 2e-4, 1e-4]],
+                     point_torques=[[0, 0, 1e-5], [1e-5, 0, 0]])
+    x = torch.tensor([0.3, -0.2, 0.1, 0.2, 0.5, -0.1], dtype=D)
+    res = shoot(x, s.params, rod.grid, L, s.scales, fld, tangent=True, fd_step=s.fd_step)
+    e, Jfd = 1e-6, torch.zeros(6, 6, dtype=D)
+    for j in range(6):
+        dx = torch.zeros(6, dtype=D)
+        dx[j] = e
+        Jfd[:, j] = (shoot(x + dx, s.params, rod.grid, L, s.scales, fld).r
+                     - shoot(x - dx, s.params, rod.grid, L, s.scales, fld).r) / (2 * e)
+    assert (res.J - Jfd).abs().max() < 1e-7 * res.J.abs().max()
+    # the compiled path's lane formulation (run eagerly here) gives the same shot
+    tabs = lane_tables(s.params, rod.grid, L)
+    r2, J2, Y2 = shoot_lanes(lane_step, x, s.params, tabs, L, s.scales, fld, 0.0, s.fd_step)
+    assert (res.r - r2).abs().max() < 1e-13 and (res.J - J2).abs().max() < 1e-12 and (res.Y - Y2).abs().max() < 1e-14
+
+
+# ------------------------------------------------------------------------------------ gradients
+def test_implicit_gradients_match_finite_differences():
+    mat = Material(E=2e6, density=1100.0, nu=0.5)
+    sec = CircularSection(3e-3)
+    rod = CosseratRod((Segment(0.03, sec, mat), Segment(0.03, sec, mat)), n_nodes=13,
+                      magnets=(MagnetDipole(0.06, (0.0, 0.0, 2e-3), mass=2e-4),))
+    solver = CosseratSolver(rod, tol=1e-13)
+    w = torch.tensor([0.3, -1.0, 0.7], dtype=D)
+
+    def objective(B, F, E, grad=True, init=None):
+        prm = rod.params(D, youngs_modulus=E)
+        sol = solver.solve(field=UniformField(B), tip_force=F, gravity=G, params=prm, differentiable=grad, init=init)
+        return (sol.tip_position * w).sum() + 0.01 * tip_angle(sol, (1, 2)), sol
+
+    B0 = torch.tensor([0.0, 0.03, 0.01], dtype=D, requires_grad=True)
+    F0 = torch.tensor([1e-3, 0.0, -5e-4], dtype=D, requires_grad=True)
+    E0 = torch.tensor([2e6, 3e6], dtype=D, requires_grad=True)
+    val, base = objective(B0, F0, E0)
+    assert float(tip_angle(base, (1, 2)).detach().abs()) > 0.3  # a large deflection
+    gB, gF, gE = torch.autograd.grad(val, (B0, F0, E0))
+    for x, g, h in ((B0, gB, 1e-6), (F0, gF, 1e-7), (E0, gE, 10.0)):
+        for i in range(x.numel()):
+            d = torch.zeros_like(x)
+            d.view(-1)[i] = h
+            args = [B0.detach(), F0.detach(), E0.detach()]
+            k = [id(B0), id(F0), id(E0)].index(id(x))
+            ap, am = list(args), list(args)
+            ap[k], am[k] = args[k] + d, args[k] - d
+            with torch.no_grad():
+                fd = (objective(*ap, grad=False, init=base)[0] - objective(*am, grad=False, init=base)[0]) / (2 * h)
+            assert abs(float(g.view(-1)[i]) - float(fd)) <= 1e-5 * abs(float(fd)) + 1e-9 * float(g.abs().max())
+
+
+def test_inverse_problem_finds_field_for_target_tip_angle():
+    rod = CosseratRod.uniform(0.05, CircularSection(1e-3), Material(E=2e6, density=1100.0, nu=0.5),
+                              magnets=(MagnetDipole(0.05, (0.0, 0.0, 5e-3)),))
+    target = math.radians(45.0)
+    fit = fit_uniform_field(CosseratSolver(rod), target, magnitude=2e-4, field_angle=math.radians(170))
+    assert abs(fit.tip_angle - target) < math.radians(0.5)
+    b_min = rod.bending_scale * target / (0.05 * 5e-3)  # pure end moment, field across the tip
+    assert abs(float(fit.field.norm()) / b_min - 1) < 0.03 and abs(float(fit.field[1])) < 1e-12
+
+
+# ------------------------------------------------------------------------------------ warm start, continuation, failure
+def test_warm_start_continuation_and_failure_flags():
+    rod = tip_magnet_rod()
+    solver = CosseratSolver(rod, max_iter=30)
+    B = torch.tensor([0.0, 0.05, 0.0], dtype=D)
+    cold = solver.solve(field=UniformField(B), gravity=G)
+    warm = solver.solve(field=UniformField(B * 1.01), gravity=G, init=cold)
+    assert int(warm.iterations) <= 3 < int(cold.iterations)
+    # a soft rod turned by 80 deg needs continuation; without it the problem is flagged
+    rod = tip_magnet_rod(E=4e5)
+    big = torch.tensor([[0.0, 0.004, 0.0], [0.0, 0.02 * math.sin(2.5), 0.02 * math.cos(2.5)]], dtype=D)
+    with pytest.raises(SolverError, match="did not converge for 1 of 2"):
+        CosseratSolver(rod).solve(field=UniformField(big[:, None, :]), max_load_steps=1)
+    flagged = CosseratSolver(rod).solve(field=UniformField(big[:, None, :]), max_load_steps=1, raise_on_failure=False)
+    assert flagged.converged.tolist() == [True, False] and float(flagged.residual[1]) > solver.tol
+    ok = CosseratSolver(rod).solve(field=UniformField(big[:, None, :]))  # automatic continuation for the hard one
+    assert bool(ok.converged.all()) and float(tip_angle(ok, (1, 2))[1]) > math.radians(70)
+    assert int(ok.iterations[1]) > int(ok.iterations[0])
+
+
+def test_float32_close_to_float64():
+    rod = tip_magnet_rod()
+    B = torch.tensor([0.0, 0.01, 0.002])
+    s32 = CosseratSolver(rod, dtype=torch.float32).solve(field=UniformField(B), gravity=G)
+    s64 = CosseratSolver(rod).solve(field=UniformField(B.double()), gravity=G)
+    assert s32.y.dtype == torch.float32 and bool(s32.converged)
+    assert (s32.tip_position.double() - s64.tip_position).abs().max() < 1e-4 * 0.06
+
+
+# ------------------------------------------------------------------------------------ the Paper II scene
+def test_paper2_scene_and_dead_wrench_equivalence():
+    sc = paper2_magnetic_rod()
+    rod = sc.rod
+    assert len(rod.grid.s) == 13 and rod.length == pytest.approx(0.05)
+    assert [s.material for s in rod.segments] == [PMC770, NDFEB, PMC770, NDFEB]
+    assert rod.magnets[1].moment[2] == pytest.approx(1.345 * 2e-3 * 2e-3 * 3e-3 / (4e-7 * math.pi)) and MU0 == 4e-7 * math.pi
+    fld = LinearField(torch.tensor([0.004, 0.0015, 0.0], dtype=D), torch.diag(torch.tensor([0.02, -0.01, -0.01], dtype=D)))
+    sol = sc.solve(field=fld)
+    assert bool(sol.converged) and float(sol.tip_position[2]) < -0.04  # hangs down, bent sideways
+    assert float(sol.tip_position[0]) > 0.01
+    # the magnets' wrenches at the solved poses, applied as dead point loads, give the same shape
+    R = sol.R
+    nodes = rod.grid.magnet_nodes
+    pos = sol.p[list(nodes)]
+    mom = torch.stack([R[j] @ torch.tensor(m.moment, dtype=D) for j, m in zip(nodes, rod.magnets)])
+    Bv, dB = fld(0.0, pos)
+    F = (dB * mom[:, :, None]).sum(-2)
+    T = torch.linalg.cross(mom, Bv, dim=-1)
+    dead = sc.solve(point_forces=F, point_torques=T, init=sol)
+    assert (dead.p - sol.p).abs().max() < 1e-9
+
+
+# ------------------------------------------------------------------------------------ bad input
+def test_bad_input_raises_clear_errors():
+    base = steel_like_rod()
+    sec, mat = base.section, base.material
+    with pytest.raises(ValueError, match="Material.E"):
+        Material(E=-1.0, density=1000.0, nu=0.3)
+    with pytest.raises(ValueError, match="Segment.length"):
+        Segment(0.0, sec, mat)
+    with pytest.raises(TypeError, match="Segment.section"):
+        Segment(0.1, 0.01, mat)
+    with pytest.raises(ValueError, match=r"load_points\[0\]"):
+        CosseratRod.uniform(0.2, sec, mat, load_points=(0.3,))
+    with pytest.raises(ValueError, match=r"magnets\[0\].s"):
+        CosseratRod.uniform(0.2, sec, mat, magnets=(MagnetDipole(-0.01, (0, 0, 1)),))
+    with pytest.raises(ValueError, match="n_nodes must be >= 4"):
+        CosseratRod.uniform(0.2, sec, mat, n_nodes=3, load_points=(0.05, 0.1))
+    rod = uniform(base, 13)
+    solver = CosseratSolver(rod)
+    with pytest.raises(ValueError, match="base_quaternion"):
+        solver.solve(base_quaternion=(1.0, 0.1, 0.0, 0.0))
+    with pytest.raises(ValueError, match="tip_force"):
+        solver.solve(tip_force=(1.0, 0.0))
+    with pytest.raises(ValueError, match="gravity must be finite"):
+        solver.solve(gravity=(0.0, float("nan"), 0.0))
+    with pytest.raises(ValueError, match="point_forces"):
+        solver.solve(point_forces=torch.zeros(1, 3))
+    with pytest.raises(TypeError, match="field"):
+        solver.solve(field=3.0)
+    with pytest.raises(ValueError, match="youngs_modulus"):
+        rod.params(youngs_modulus=torch.tensor([-1.0]))
+    with pytest.raises(ValueError, match="tol"):
+        CosseratSolver(rod, tol=0.0)
+    with pytest.raises(ValueError, match="load_steps"):
+        solver.solve(load_steps=0)

@@ -1,0 +1,35 @@
+"""Smoke runs of the Cosserat benchmark and the Figure II.13 report with tiny budgets (eager path):
+they run, agree with the scipy peer, and end with one JSON line."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_script(args, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_bench_cosserat_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/bench/cosserat.py"), "--quick", "--no-compile", "--batch", "8",
+                      "--window", "0.05"], tmp_path)
+    for key in ("single_warm_hz", "single_cold_hz", "batched_solves_per_s", "scipy_warm_hz", "speedup_vs_scipy_warm",
+                "max_tip_diff_vs_scipy_m", "n_nodes", "dtype", "threads", "batch", "device"):
+        assert key in res
+    assert res["n_nodes"] == 13 and res["batch"] == 8 and res["compiled"] is False
+    assert res["max_tip_diff_vs_scipy_m"] < 1e-6 and res["single_warm_hz"] > 0
+
+
+def test_report_cosserat_timing_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_cosserat_timing.py"), "--quick", "--no-compile", "--reps", "1",
+                      "--out", "timing.md"], tmp_path)
+    assert (tmp_path / "timing.md").exists() and (tmp_path / "timing.png").stat().st_size > 10_000
+    assert not list(tmp_path.glob("*.tmp*"))  # atomic writes leave no temporaries
+    assert "8.33-50 Hz" in (tmp_path / "timing.md").read_text()
+    assert res["tip_error_pct_L"]["13"] < res["tip_error_pct_L"]["7"] and len(res["hz_13_nodes"]) == 3
