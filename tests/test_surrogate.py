@@ -87,6 +87,9 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     hist = rolled[:1].expand(3, -1, -1)[None]
     direct = model.rollout(hist, W[None], rolled[:1])[0]
     assert torch.allclose(rolled[1:], direct, atol=1e-6)
+    frozen = model(hist, W[:1][None].squeeze(0), rolled[:1])  # the engine froze Input Layer I into a matrix
+    model.unfreeze_features()
+    assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1]), frozen, atol=1e-7)
     fr = free_running(model, torch.cat([rolled[:1].expand(2, -1, -1), rolled]), torch.cat([torch.zeros(2, *W.shape[1:]), W]), 2)
     assert torch.allclose(fr, rolled[1:], atol=1e-6)
 

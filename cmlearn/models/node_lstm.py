@@ -129,12 +129,36 @@ class NodeLSTMSurrogate(nn.Module):
         geo = (rel0 / self.length_scale).expand(-1, hist.shape[1], -1, -1)
         return torch.cat([disp, drel, step, geo], -1).transpose(1, 2)
 
+    @torch.no_grad()
+    def freeze_features(self) -> "NodeLSTMSurrogate":
+        """Inference speed-up: Input Layer I is linear in (history, reference), so precompute it as one
+        matrix (built by applying :meth:`features` to the unit basis). Call again after changing the
+        scales; :meth:`unfreeze_features` (or ``train()``) returns to the explicit computation."""
+        W, N = self.config.eta + 1, self.config.n_tracked
+        D = (W + 1) * N * 3
+        basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
+        self._feature_matrix = self.features(basis[:, :W], basis[:, W]).reshape(D, -1)
+        return self
+
+    def unfreeze_features(self) -> None:
+        self._feature_matrix = None
+
+    def train(self, mode: bool = True):
+        if mode:
+            self._feature_matrix = None
+        return super().train(mode)
+
     def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
         """One surrogate step: history (B, eta+1, n_tracked, 3), node forces (B, K, 3) and the reference
         shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3)."""
         B, W = hist.shape[:2]
         K = self.idx_modeled.numel()
-        f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
+        M = getattr(self, "_feature_matrix", None)
+        if M is not None:
+            f = (torch.cat([hist, ref[:, None]], 1).reshape(B, -1) @ M).reshape(B, K, W, N_FEATURES)
+            f = f.reshape(B * K, W, N_FEATURES)
+        else:
+            f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
         out, _ = self.lstm(f)
         h = out[:, -1].reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)

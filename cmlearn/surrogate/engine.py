@@ -31,6 +31,7 @@ class Surrogate:
             if key in meta and meta[key] != want:
                 raise CheckpointError(f"checkpoint for task {meta['task']!r} has {key} = {meta[key]}, but the task "
                                       f"now defines {want}: retrain it with scripts/train_surrogate.py")
+        model.freeze_features()
         self._step = model
 
     @classmethod
