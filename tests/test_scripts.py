@@ -51,3 +51,16 @@ def test_magnet_convergence_report_quick(tmp_path):
     assert (tmp_path / "conv.md").exists()
     errs = res["field_err_75mm"]
     assert errs["1728"] < 1e-4 < errs["8"]
+
+
+def test_bench_surrogate_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/bench/surrogate.py"), "--quick", "--task", "square_tracking",
+                      "--checkpoint", str(ROOT / "checkpoints/square_tracking.pt")], tmp_path)
+    for key in ("surrogate_step_hz", "lgvi_step_hz", "speedup_per_simulated_second", "quick_rollout_max_err_mm"):
+        assert key in res
+    assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1
+
+
+def test_surrogate_report(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
+    assert (tmp_path / "s.md").exists() and len(res["rows"]) >= 3
