@@ -1,19 +1,6 @@
 """Smoke runs of the Cosserat benchmark and the Figure II.13 report with tiny budgets (eager path):
 they run, agree with the scipy peer, and end with one JSON line."""
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def run_script(args, tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+from test_scripts import ROOT, run_script
 
 
 def test_bench_cosserat_quick(tmp_path):
