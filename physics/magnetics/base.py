@@ -9,6 +9,7 @@ Models add by superposition: ``a + b`` is a :class:`Superposition`.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Callable
 
 import torch
@@ -29,11 +30,12 @@ def check_points(points: Tensor, name: str = "points") -> Tensor:
     return points
 
 
-class FieldModel:
+class FieldModel(ABC):
     """Base class of static field models (subclasses implement ``field_and_gradient``)."""
 
-    def field_and_gradient(self, points: Tensor) -> tuple[Tensor, Tensor]:  # pragma: no cover
-        raise NotImplementedError
+    @abstractmethod
+    def field_and_gradient(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """B (..., P, 3) and dB_i/dx_j (..., P, 3, 3) at ``points`` (..., P, 3)."""
 
     def field(self, points: Tensor) -> Tensor:
         return self.field_and_gradient(points)[0]

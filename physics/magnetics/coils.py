@@ -47,6 +47,7 @@ value by less than 0.5 % (inner pair, (0.03/0.12)^4 scaling) and 0.02 % (outer p
 from __future__ import annotations
 
 import functools
+from abc import abstractmethod
 import math
 from dataclasses import dataclass, replace
 from typing import Sequence
@@ -188,9 +189,9 @@ def _cached_loops(coil):
 class _LoopSet(FieldModel):
     """A field model made of coaxial-or-not loops, linear in one current (``self.current``)."""
 
-    def loops(self):  # pragma: no cover - implemented by subclasses
+    @abstractmethod
+    def loops(self):
         """(centres (L, 3), axes (L, 3), radii (L,), turns (L,)) as float64 CPU tensors."""
-        raise NotImplementedError
 
     def unit_field_and_gradient(self, points: Tensor, gradient: bool = True):
         """Field (..., P, 3) and gradient (..., P, 3, 3) per ampere of coil current."""

@@ -13,6 +13,7 @@ magnetised sphere is exactly a dipole outside itself.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -28,7 +29,7 @@ __all__ = ["CuboidMagnet", "CylinderMagnet", "SphereMagnet", "MagnetField"]
 
 
 @dataclass(frozen=True)
-class _Magnet:
+class _Magnet(ABC):
     """Common fields: ``polarization`` J (T) in the magnet frame, ``position`` (m), ``orientation``."""
 
     polarization: Sequence[float] = (0.0, 0.0, 1.0)
@@ -41,8 +42,13 @@ class _Magnet:
         object.__setattr__(self, "orientation", _rotation(self.orientation))
 
     @property
-    def volume(self) -> float:  # pragma: no cover - overridden
-        raise NotImplementedError
+    @abstractmethod
+    def volume(self) -> float:
+        """Volume (m^3)."""
+
+    @abstractmethod
+    def _cells(self, count: int) -> tuple[Tensor, Tensor]:
+        """Dipole positions (S, 3) in the magnet frame and the volume (S,) each stands for."""
 
     @property
     def moment(self) -> Tensor:
