@@ -52,7 +52,6 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
         from dataclasses import replace
         scene = replace(scene, duration=duration)
     engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
-    torch.set_num_threads(1)
     p_ref, _, wall_ref = scene_rollout(task, scene)
     p_sur, wall_sur = engine.run_scene(scene)
     slots = interest_slots(task, scene)
@@ -113,6 +112,9 @@ def _plots(res: dict, out: Path) -> list[Path]:
 
 
 def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = None) -> dict:
+    import torch
+
+    torch.set_num_threads(1)  # batch-1 stepping: one thread is fastest and timings are comparable
     t0 = time.perf_counter()
     res = compare_scene(scene, checkpoint, duration)
     out = Path(out or f"out/compare_{res['scene']}")

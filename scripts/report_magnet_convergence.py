@@ -76,7 +76,7 @@ def to_markdown(rows, distances, cmd: str) -> str:
     lines = [
         "# Permanent magnets as dipole grids: convergence",
         "",
-        f"50.8 mm cube, Br 1.3 T, as n^3 point dipoles at the cell centres, against the exact cuboid field",
+        "50.8 mm cube, Br 1.3 T, as n^3 point dipoles at the cell centres, against the exact cuboid field",
         "(magpylib; its gradient by 4th-order central differences, h = 10 um). Maximum relative error over 64",
         "random directions at each distance from the centre (the cube's corners are at 44 mm). Time: one",
         "field evaluation per point, float64, 1 thread, 10,000 points.",

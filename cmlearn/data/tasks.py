@@ -165,9 +165,7 @@ def _closed_curve(kind: str, radius: float = 0.05, period: float = 16.0):
     w = 2 * math.pi / period
 
     def ramp(t):  # minimum-jerk fade-in/out over 2 s keeps the start and end at rest
-        s_in, dd_in = _min_jerk(t / 2.0)
-        s_out, dd_out = _min_jerk((period - t) / 2.0)
-        return s_in * s_out
+        return _min_jerk(t / 2.0)[0] * _min_jerk((period - t) / 2.0)[0]
 
     def curve(t):
         def pos(tt):

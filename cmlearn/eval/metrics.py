@@ -1,7 +1,6 @@
 """Error metrics of Paper II: per-axis maximum and mean absolute errors and RMSE(t) (II.2)."""
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 __all__ = ["axis_errors", "rmse_t"]

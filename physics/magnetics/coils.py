@@ -58,7 +58,7 @@ from torch import Tensor
 
 from .base import FieldModel, TimeVarying, check_points
 from .dipole import MU0, dipole_torque, force_from_gradient
-from .elliptic import _agm, agm_iterations, ellipe, ellipk
+from .elliptic import _agm, agm_iterations
 from .validate import positive as _positive, real as _real, vec3 as _vec3
 
 __all__ = [

@@ -288,7 +288,6 @@ class EMNS(FieldModel):
         Ar = torch.cat([r.expand(*batch, *r.shape[-2:]) for r in rows], -2)  # (..., P, R1, C)
         y = torch.cat([v.expand(*batch, v.shape[-1]) for v in ys], -1)
         w = torch.cat(ws, -1).expand(*batch, Ar.shape[-2])
-        C = self.n_coils
         Af, yf, wf = Ar.flatten(-3, -2), y.flatten(-2), w.flatten(-2)
         imax = self.max_current if max_current is None else max_current
         I, at_limit = allocate_currents(Af, yf, weights=wf, regularization=regularization, max_current=imax,
