@@ -1,0 +1,66 @@
+"""Train the Rainbow-IQN-ResNet agent (Sub-controller 2) on the magnetic-particle environment.
+
+Every field of :class:`cmlearn.rl.training.AgentTrainConfig` is a flag (``--total-frames``,
+``--num-envs``, ``--workers`` for multi-process collection with ``MultiSyncCollector``, ``--lr``,
+``--n-steps``, ...); ``--network '{"widths": [16, 32]}'`` changes the architecture. Writes to
+``--out``: ``train_state.pt`` (everything needed to resume: weights, target network, optimiser,
+counters, random state; the replay buffer too with ``--save-buffer``), ``agent.pt`` + ``agent.json``
+(the network and metadata, the format shipped in ``checkpoints/``), CSV and TensorBoard logs and
+``summary.json``. ``--resume`` continues from ``train_state.pt`` and says whether the replay buffer
+was restored. ``--ship PATH`` copies the final agent to PATH (e.g. ``checkpoints/iqn_agent.pt``).
+``--quick`` is a smoke-test budget (a few thousand frames).
+
+    python scripts/train_agent.py --total-frames 400000 --out runs/iqn --ship checkpoints/iqn_agent.pt
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from dataclasses import fields
+
+from cmlearn.rl.agent import load_agent, save_agent
+from cmlearn.rl.training import AgentTrainConfig, config_from_args, train_agent
+
+
+def parse(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for f in fields(AgentTrainConfig):
+        flag = "--" + f.name.replace("_", "-")
+        if f.name == "network":
+            ap.add_argument(flag, type=json.loads, default={}, help="IQNConfig fields as JSON")
+        elif f.type in ("bool", bool):
+            ap.add_argument(flag, action="store_true", default=f.default)
+        else:
+            ap.add_argument(flag, type=type(f.default), default=f.default)
+    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="smoke-test budget")
+    ap.add_argument("--ship", default="", help="copy the final agent checkpoint here")
+    ns = ap.parse_args(argv)
+    if ns.no_progress:
+        ns.progress = False
+    if ns.quick:
+        ns.total_frames, ns.init_random_frames, ns.eval_every, ns.eval_episodes = 2_048, 512, 1_024, 2
+        ns.checkpoint_every, ns.buffer_size, ns.train_maps, ns.max_steps = 1_024, 4_096, 1, 30
+    return ns
+
+
+def main(argv=None):
+    ns = parse(argv)
+    cfg = config_from_args(ns)
+    command = "python scripts/train_agent.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None
+                                                                                    else argv))
+    res = train_agent(cfg, command=command)
+    if ns.ship:
+        net, meta = load_agent(res.agent_path)
+        save_agent(ns.ship, net, meta)
+        print(f"shipped {ns.ship}")
+    print(json.dumps({"frames": res.frames, "updates": res.updates, "wall_s": round(res.wall_s, 1),
+                      "resumed_from": res.resumed_from, "buffer_restored": res.buffer_restored,
+                      "final_eval": res.evaluations[-1] if res.evaluations else None, "agent": res.agent_path}))
+    return res
+
+
+if __name__ == "__main__":
+    main()

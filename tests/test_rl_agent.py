@@ -1,0 +1,209 @@
+"""The Rainbow-IQN agent: network, IQN loss, replay priorities, noise, training, checkpoints, resume."""
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torchrl")
+pytest.importorskip("pybullet")
+import torch  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
+from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E402
+
+from cmlearn.models.iqn import IQNConfig, IQNNetwork, find_iqn_network, make_iqn_actor  # noqa: E402
+from cmlearn.rl import Map, MagneticParticleEnv, RandomPolicy, run_episode  # noqa: E402
+from cmlearn.rl.agent import CheckpointError, IQNAgent, load_agent, save_agent  # noqa: E402
+from cmlearn.rl.iqn_loss import IQNLoss, quantile_huber_loss  # noqa: E402
+from cmlearn.rl.training import AgentTrainConfig, train_agent  # noqa: E402
+
+SMALL = dict(stem_channels=4, widths=(4,), feature_dim=16, hidden_dim=16, num_cosines=8, num_policy_quantiles=8)
+
+
+def batch(B=6, seed=0, gamma=None, terminated=None):
+    g = torch.Generator().manual_seed(seed)
+    td = TensorDict({
+        "observation": torch.randint(0, 256, (B, 2, 84, 84), dtype=torch.uint8, generator=g),
+        "action": torch.nn.functional.one_hot(torch.randint(0, 4, (B,), generator=g), 4),
+        "next": {"observation": torch.randint(0, 256, (B, 2, 84, 84), dtype=torch.uint8, generator=g),
+                 "reward": torch.randn(B, 1, generator=g),
+                 "terminated": torch.zeros(B, 1, dtype=torch.bool) if terminated is None else terminated}}, [B])
+    if gamma is not None:
+        td["gamma"] = gamma
+    return td
+
+
+def test_quantile_huber_loss_equals_hand_computation():
+    pred = torch.tensor([[0.0, 2.0]])
+    taus = torch.tensor([[0.25, 0.75]])
+    target = torch.tensor([[0.5, 3.0]])
+    # by hand, kappa = 1: delta_ij = y_j - z_i
+    # i=0 (z=0, tau=.25): d=.5 -> .25*.125 = .03125 ; d=3 -> .25*(3-.5) = .625   -> mean .328125
+    # i=1 (z=2, tau=.75): d=-1.5 -> |.75-1|*(1.5-.5) = .25 ; d=1 -> .75*.5 = .375 -> mean .3125
+    assert quantile_huber_loss(pred, target, taus, 1.0).item() == pytest.approx(0.328125 + 0.3125, abs=1e-7)
+    # kappa = 2: |delta| = 3 stays linear (2 (3 - 1)), the others are quadratic; all divided by kappa
+    hand = (0.25 * 0.125 + 0.25 * (2 * (3 - 1))) / 2 / 2 + (0.25 * 1.125 + 0.75 * 0.5) / 2 / 2
+    assert quantile_huber_loss(pred, target, taus, 2.0).item() == pytest.approx(hand, abs=1e-7)
+    with pytest.raises(ValueError, match="kappa"):
+        quantile_huber_loss(pred, target, taus, 0.0)
+
+
+def test_loss_gradients_reach_every_parameter_and_priorities_are_written():
+    actor = make_iqn_actor(IQNConfig(**SMALL))
+    loss = IQNLoss(actor, num_quantiles=8, num_target_quantiles=8)
+    td = batch()
+    out = loss(td)
+    out["loss"].backward()
+    for name, p in loss.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    assert td["td_error"].shape == (6,) and (td["td_error"] > 0).all()
+
+
+def test_double_q_target_uses_the_online_argmax_and_the_data_discount():
+    actor = make_iqn_actor(IQNConfig(**SMALL))
+    loss = IQNLoss(actor, num_quantiles=8, num_target_quantiles=5, noisy=False)
+    net = find_iqn_network(actor)
+    key = ("module", "0", "module", "advantage", "2", "bias_mu")
+    loss.value_network_params.get(key).data += torch.tensor([0.0, 10.0, 0.0, 0.0])   # online prefers action 1
+    loss.target_value_network_params.get(key).data += torch.tensor([10.0, 0.0, 0.0, 0.0])  # target prefers 0
+    term = torch.tensor([[False], [True], [False], [False]])
+    td = batch(4, gamma=torch.tensor([0.99 ** 3, 0.99 ** 3, 0.99 ** 2, 0.99]), terminated=term)
+    torch.manual_seed(3)
+    a_star, y = loss.target_quantiles(td)
+    torch.manual_seed(3)
+    k = net.config.num_policy_quantiles
+    taus_online, taus_target = torch.rand(4, k), torch.rand(4, 5)
+    obs = td["next", "observation"]
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        with loss.value_network_params.to_module(loss.value_network):
+            online = net.quantiles(obs, taus_online).mean(-2)
+        with loss.target_value_network_params.to_module(loss.value_network):
+            z_t = net.quantiles(obs, taus_target)
+    assert torch.equal(a_star, online.argmax(-1)) and (a_star == 1).all()
+    assert (z_t.mean(-2).argmax(-1) == 0).all()  # the target alone would have picked another action
+    r = td["next", "reward"].reshape(4)
+    expected = r[:, None] + (td["gamma"] * (~term.reshape(4)))[:, None] * z_t[:, :, 1]
+    torch.testing.assert_close(y, expected)
+    assert torch.allclose(y[1], r[1].expand(5))  # a terminal transition does not bootstrap
+
+
+def test_priorities_change_after_an_update():
+    from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer
+    actor = make_iqn_actor(IQNConfig(**SMALL))
+    loss = IQNLoss(actor, num_quantiles=8, num_target_quantiles=8)
+    rb = TensorDictPrioritizedReplayBuffer(alpha=0.6, beta=0.4, storage=LazyTensorStorage(64), batch_size=8)
+    rb.extend(batch(32, seed=1))
+    sample = rb.sample()
+    idx = sample["index"]
+    before = torch.tensor([rb.sampler._sum_tree[int(i)] for i in idx])
+    assert "priority_weight" in sample.keys()
+    loss(sample)["loss"].backward()
+    rb.update_tensordict_priority(sample)
+    after = torch.tensor([rb.sampler._sum_tree[int(i)] for i in idx])
+    assert not torch.allclose(before, after)
+    expected = (sample["td_error"] + rb.sampler._eps) ** 0.6
+    for i in range(len(idx)):  # an index drawn twice keeps one of its two new priorities
+        same = idx == idx[i]
+        assert torch.isclose(expected[same], after[i], rtol=1e-4).any()
+
+
+def test_noise_is_resampled_and_off_in_deterministic_evaluation():
+    net = IQNNetwork(IQNConfig(**SMALL))
+    obs = batch(3)["observation"]
+    taus = torch.rand(3, 4)
+    with torch.no_grad():
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            d1 = net.quantiles(obs, taus)
+            a1 = net(obs)
+        with set_exploration_type(ExplorationType.RANDOM):
+            r1 = net.quantiles(obs, taus)
+        net.reset_noise()
+        with set_exploration_type(ExplorationType.RANDOM):
+            r2 = net.quantiles(obs, taus)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            d2 = net.quantiles(obs, taus)
+            a2 = net(obs)
+    assert torch.equal(d1, d2) and torch.equal(a1, a2)  # no noise, fixed quantile midpoints
+    assert not torch.allclose(r1, d1) and not torch.allclose(r1, r2)
+
+
+def test_network_shapes_and_bad_input():
+    net = IQNNetwork(IQNConfig(**SMALL))
+    assert net.quantiles(batch(2)["observation"], torch.rand(2, 7)).shape == (2, 7, 4)
+    with pytest.raises(ValueError, match="observation"):
+        net(torch.zeros(2, 3, 84, 84))
+    with pytest.raises(ValueError, match="taus"):
+        net.quantiles(batch(2)["observation"], torch.rand(3, 7))
+    with pytest.raises(ValueError, match="widths"):
+        IQNConfig(widths=())
+    with pytest.raises(ValueError, match="frames_per_batch"):
+        AgentTrainConfig(num_envs=4, frames_per_batch=30)
+
+
+def test_checkpoint_acts_deterministically_and_bad_files_give_clear_errors(tmp_path):
+    net = IQNNetwork(IQNConfig(**SMALL))
+    path = save_agent(tmp_path / "a.pt", net, {"note": "test"})
+    obs = batch(1)["observation"][0].numpy()
+    a, b = IQNAgent.load(path), IQNAgent.load(path)
+    assert np.array_equal(a.q_values(obs), a.q_values(obs)) and np.array_equal(a.q_values(obs), b.q_values(obs))
+    assert a.act(obs, {}) == b.act(obs, {}) and a.meta["note"] == "test"
+    blob = torch.load(path, weights_only=True)
+    blob["config"]["widths"] = [8]  # another architecture
+    torch.save(blob, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="architecture"):
+        load_agent(tmp_path / "other.pt")
+    torch.save({"format": "cmlearn-surrogate/1"}, tmp_path / "surrogate.pt")
+    with pytest.raises(CheckpointError, match="cmlearn-iqn-agent/1"):
+        load_agent(tmp_path / "surrogate.pt")
+    data = path.read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match="truncated"):
+        load_agent(tmp_path / "cut.pt")
+    with pytest.raises(CheckpointError, match="no such"):
+        load_agent(tmp_path / "missing.pt")
+
+
+def corridor(length=0.3, width=0.05, height=0.1, res=0.002):
+    H, W = int(round(height / res)), int(round(length / res))
+    img = np.full((H, W), 20, np.uint8)
+    y = (H - 0.5 - np.arange(H)) * res
+    img[np.abs(y - height / 2) < width / 2, :] = 235
+    return Map(img, res, (-0.15, 0.40), name="corridor")
+
+
+def success_rate(env, controller, episodes, seed=500):
+    return np.mean([run_episode(env, controller, seed=seed + i).success for i in range(episodes)])
+
+
+def test_quick_training_beats_a_random_policy(tmp_path):
+    maps = [corridor()]
+    net = dict(stem_channels=8, widths=(8,), feature_dim=64, hidden_dim=64, num_cosines=32, num_policy_quantiles=16)
+    cfg = AgentTrainConfig(total_frames=2_048, init_random_frames=512, num_envs=4, frames_per_batch=32,
+                           updates_per_batch=8, target_update=100, buffer_size=4_096, lr=5e-4, max_steps=40,
+                           disturbance_probability=0.0, eval_every=10_000, eval_episodes=1,
+                           checkpoint_every=10_000, out=str(tmp_path / "run"), progress=False, seed=1, network=net)
+    res = train_agent(cfg, maps=maps, log=lambda s: None)
+    assert res.frames >= 2_048 and res.updates > 0
+    env = MagneticParticleEnv(maps=maps, atlas_cache=None, max_steps=40)
+    trained = success_rate(env, IQNAgent.load(res.agent_path), 20)
+    rand = success_rate(env, RandomPolicy(seed=0), 20)
+    assert trained >= rand + 0.3, (trained, rand)
+
+
+def test_interrupted_run_resumes_and_states_the_replay_buffer(tmp_path):
+    maps = [corridor()]
+    base = dict(total_frames=384, init_random_frames=64, num_envs=2, frames_per_batch=16, updates_per_batch=2,
+                buffer_size=1_024, max_steps=20, eval_every=10_000, eval_episodes=1, checkpoint_every=128,
+                progress=False, disturbance_probability=0.0, network=dict(SMALL))
+    for save_buffer, expected in ((False, "NOT restored"), (True, "restored")):
+        out = tmp_path / f"run{save_buffer}"
+        cfg = AgentTrainConfig(out=str(out), save_buffer=save_buffer, **base)
+        first = train_agent(cfg, maps=maps, log=lambda s: None, stop_after_frames=192)
+        assert first.frames == 192 and first.resumed_from is None
+        lines = []
+        cfg = AgentTrainConfig(out=str(out), save_buffer=save_buffer, resume=True, **base)
+        second = train_agent(cfg, maps=maps, log=lines.append)
+        assert second.resumed_from == 192 and second.frames == 384 and second.buffer_restored is save_buffer
+        assert second.updates > first.updates
+        assert any(expected in s and "resumed from frame 192" in s for s in lines), lines
+    with pytest.raises(FileNotFoundError, match="resume"):
+        train_agent(AgentTrainConfig(out=str(tmp_path / "none"), resume=True, **base), maps=maps)
