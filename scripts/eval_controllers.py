@@ -1,6 +1,7 @@
 """Evaluate Sub-controller 2 candidates inside the switching controller (thesis Section 4.1.3).
 
-For each controller (``attractor``, ``errt``, ``random``) and each setting (undisturbed /
+For each controller (``iqn``: the trained Rainbow-IQN agent of ``--agent``, ``attractor``, ``errt``,
+``random``) and each setting (undisturbed /
 disturbed x training maps / unseen maps) it runs ``--episodes`` seeded episodes with random
 start and goal (the same seeds for every controller) and reports: success rate with its 95 %
 Wilson interval, mean decisions (Sub-controller 2 steps) and Sub-controller 1 steps, particle path
@@ -9,7 +10,7 @@ episode maximum, averaged over episodes, as the thesis), compute time per decisi
 failure reasons. Saves trajectory plots like Figures 4.9-4.13 and a markdown table; prints one
 JSON line last.
 
-    python scripts/eval_controllers.py [--quick] [--episodes 200] [--controllers attractor,errt]
+    python scripts/eval_controllers.py [--quick] [--episodes 200] [--controllers iqn,attractor,errt]
 """
 from __future__ import annotations
 
@@ -28,7 +29,9 @@ import numpy as np
 class Args:
     quick: bool = False
     episodes: int = 200
-    controllers: str = "attractor,errt"
+    controllers: str = "iqn,attractor,errt"
+    agent: str = str(Path(__file__).resolve().parents[1] / "checkpoints" / "iqn_agent.pt")
+    threads: int = 1
     seed: int = 0
     train_maps: int = 8
     unseen_maps: int = 8
@@ -69,17 +72,20 @@ def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return max(0.0, mid - half), min(1.0, mid + half)
 
 
-def make_controller(name: str, env, seed: int):
+def make_controller(name: str, env, seed: int, agent: str = ""):
     from cmlearn.planning import AttractorController, ERRTController
     from cmlearn.rl import RandomPolicy
     mpp = env.unwrapped.config.camera.metres_per_pixel
+    if name == "iqn":
+        from cmlearn.rl.agent import IQNAgent
+        return IQNAgent.load(agent)
     if name == "attractor":
         return AttractorController(mpp)
     if name == "errt":
         return ERRTController(mpp, seed=seed)
     if name == "random":
         return RandomPolicy(seed)
-    raise SystemExit(f"--controllers: unknown controller {name!r} (attractor, errt, random)")
+    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, attractor, errt, random)")
 
 
 def plot_episode(res, map_, path: Path, title: str):
@@ -141,6 +147,8 @@ def summarize(results) -> dict:
 def main(argv=None):
     args = parse(argv)
     import gymnasium as gym
+    import torch
+    torch.set_num_threads(args.threads)  # time per decision on one CPU core
 
     import cmlearn.rl as rl
     from cmlearn.io import write_text_atomic
@@ -154,7 +162,7 @@ def main(argv=None):
             dist = rl.DisturbanceConfig(probability=args.disturbance_probability if disturbed else 0.0,
                                         magnitude=(args.disturbance_min, args.disturbance_max))
             env = gym.make(rl.ENV_ID, map_seeds=seeds, disturbance=dist, atlas_cache=args.atlas_cache)
-            ctrl = make_controller(name, env, args.seed)
+            ctrl = make_controller(name, env, args.seed, args.agent)
             t0 = time.perf_counter()
             results = [rl.run_episode(env, ctrl, seed=args.seed * 1_000_003 + ep) for ep in range(args.episodes)]
             summ = summarize(results)

@@ -41,8 +41,8 @@ def parse(argv=None):
     if ns.no_progress:
         ns.progress = False
     if ns.quick:
-        ns.total_frames, ns.init_random_frames, ns.eval_every, ns.eval_episodes = 2_048, 512, 1_024, 2
-        ns.checkpoint_every, ns.buffer_size, ns.train_maps, ns.max_steps = 1_024, 4_096, 1, 30
+        ns.total_frames, ns.init_random_frames, ns.eval_every, ns.eval_episodes = 1_024, 512, 512, 2
+        ns.checkpoint_every, ns.buffer_size, ns.train_maps, ns.max_steps = 512, 4_096, 1, 30
     return ns
 
 

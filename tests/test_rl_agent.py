@@ -207,3 +207,15 @@ def test_interrupted_run_resumes_and_states_the_replay_buffer(tmp_path):
         assert any(expected in s and "resumed from frame 192" in s for s in lines), lines
     with pytest.raises(FileNotFoundError, match="resume"):
         train_agent(AgentTrainConfig(out=str(tmp_path / "none"), resume=True, **base), maps=maps)
+
+
+def test_agent_runs_as_sub_controller_2_of_the_switching_controller():
+    n = 150  # a 0.3 m open square at 2 mm/px
+    square = Map(np.full((n, n), 235, np.uint8), 0.002, (-0.15, 0.30), name="square")
+    from cmlearn.rl import DisturbanceConfig
+    env = MagneticParticleEnv(maps=[square], atlas_cache=None, max_steps=3,
+                              disturbance=DisturbanceConfig(at_steps=(1,), magnitude=(0.11, 0.12), min_step=0))
+    agent = IQNAgent(IQNNetwork(IQNConfig(**SMALL)))
+    res = run_episode(env, agent, seed=1, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
+    assert res.disturbances == 1 and res.sc1_steps > 0  # Sub-controller 1 recaptured the dragged particle
+    assert set(res.trajectory[:, 4]) >= {0, 1, 2} and res.decision_time_s > 0

@@ -1,7 +1,8 @@
 """Magnetic-particle steering (thesis Chapter 4.1): UR5 kinematics, particle physics, maps,
-camera atlas, the gymnasium environment ``cmlearn/MagneticParticle-v0``, its TorchRL wrappers
-and the switching controller. Importing this package loads gymnasium (the ``rl`` extra); the
-rest (pybullet, cv2, torchrl) loads when first used."""
+camera atlas, the gymnasium environment ``cmlearn/MagneticParticle-v0``, its TorchRL wrappers,
+the switching controller, and the Rainbow-IQN agent (:mod:`.agent`, :mod:`.iqn_loss`,
+:mod:`.training`). Importing this package loads gymnasium (the ``rl`` extra); the rest (pybullet,
+cv2, torchrl) loads when first used."""
 import gymnasium as _gym
 
 from .switching import RandomPolicy, SubController1, SwitchingConfig, SwitchingLaw, run_episode
@@ -19,7 +20,16 @@ if ENV_ID not in _gym.registry:
 __all__ = ["ENV_ID", "UR5", "IKError", "ParticleParams", "ParticleSim", "Map", "load_map", "map_seeds",
            "procedural_map", "CameraSpec", "Atlas", "EnvConfig", "DisturbanceConfig", "MagneticParticleEnv",
            "ACTIONS", "SwitchingConfig", "SwitchingLaw", "SubController1", "RandomPolicy", "run_episode",
-           "make_env", "make_vector_env"]
+           "make_env", "make_vector_env", "IQNAgent", "IQNLoss", "AgentTrainConfig", "train_agent"]
+
+_LAZY = {"IQNAgent": ".agent", "IQNLoss": ".iqn_loss", "AgentTrainConfig": ".training", "train_agent": ".training"}
+
+
+def __getattr__(name):  # the agent's modules load torchrl, so only on first use
+    if name in _LAZY:
+        import importlib
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def make_env(**kwargs):
