@@ -1,4 +1,5 @@
-"""The compiled fast path of the Cosserat shooting (``CosseratSolver(..., compile=True)``).
+"""The ``torch.compile`` path of the Cosserat shooting (``CosseratSolver(..., compile=True)`` with a field
+hook :mod:`physics.cosserat_fast` cannot trace, or ``steps_per_call > 1``).
 
 Why a second formulation. ``torch.compile`` turns the vector-shaped RK4 of :mod:`physics.cosserat`
 (3-vectors, 3x3 matrices, (6, 13) tangents) into hundreds of tiny loops with an intermediate buffer

@@ -38,6 +38,7 @@ An inverse problem solved with these gradients: :func:`physics.cosserat_inverse.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import NamedTuple
 
@@ -46,6 +47,7 @@ from torch import Tensor
 
 from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape
 from .cosserat_ode import quat_matrix, shoot
+from .cosserat_fast import fast_lm
 from .cosserat_lanes import lane_chunk, lane_step, lane_tables, shoot_lanes, step_table
 from .errors import SolverError
 from .loads import UniformField
@@ -127,12 +129,14 @@ class CosseratSolver:
     """Shooting solver for one :class:`~physics.cosserat.CosseratRod` (see the module docstring).
 
     ``tol`` (default 1e-10 in float64, 1e-4 in float32) bounds the scaled tip residual;
-    ``compile=True`` runs the shots through :mod:`physics.cosserat_lanes`: a compiled RK4 step called
-    once per grid step (steps without magnets use a graph without the field), the LM update another
-    compiled graph (``jacobian='forward'``); the first solve per batch shape and dtype compiles (about
-    a minute here; inductor caches it on disk). ``steps_per_call > 1`` fuses that many steps per call,
-    each with the masked magnet code: fewer calls, longer compile; on the benchmark's rod here 4 was
-    slower than 1 (4.1 against 3.1 ms per warm solve), so 1 is the default.
+    ``compile=True`` runs the shots through :mod:`physics.cosserat_fast`: per batch shape, a compiled RK4
+    step with its tangents (one fused loop; steps without magnets run a program without the field),
+    and a compiled LM update, called through a thin wrapper (a few us a call); batches of 8 or more
+    run in a component-major layout vectorised over the problems, smaller ones on six lanes. The
+    first solve per batch shape, dtype and field kind compiles (tens of seconds to a few minutes
+    here; inductor caches it on disk). A field hook that cannot be traced (a plain function, a time
+    function inside) takes the older path of :mod:`physics.cosserat_lanes` (``torch.compile`` d step
+    per grid step), as does ``steps_per_call > 1`` (that many steps fused per call).
     """
 
     def __init__(self, rod: CosseratRod, *, dtype: torch.dtype = torch.float64, device=None,
@@ -220,6 +224,10 @@ class CosseratSolver:
         if self.compile:
             if self._step_key is not prm:  # the parameter table is reused while params are unchanged
                 self._step_key, self._step_tab = prm, step_table(prm, self.rod.grid)
+            if self.steps_per_call == 1:
+                out = fast_lm(self, x, prm, loads, field, t, its, lam0, live, self._step_tab)
+                if out is not None:
+                    return out
             tabs = lane_tables(prm, self.rod.grid, loads, self._step_tab)
 
             def evaluate(xx, prm, loads, field, t):
@@ -382,7 +390,7 @@ def _compiled():
 def _spd_solve(A: Tensor, b: Tensor) -> Tensor:
     """``A^{-1} b`` for symmetric positive definite (..., n, n): LAPACK in eager, an unrolled
     Cholesky (pointwise, fusable) under ``torch.compile``."""
-    if not torch.compiler.is_compiling():
+    if not (torch.compiler.is_compiling() or _UNROLLED[0]):
         return torch.linalg.solve(A, b)
     n = A.shape[-1]
     Lm = [[None] * n for _ in range(n)]
@@ -399,6 +407,19 @@ def _spd_solve(A: Tensor, b: Tensor) -> Tensor:
     for i in reversed(range(n)):
         xs[i] = (z[i] - sum((Lm[k][i] * xs[k] for k in range(i + 1, n)), torch.zeros_like(z[i]))) / Lm[i][i]
     return torch.stack(xs, -1)
+
+
+_UNROLLED = [False]
+
+
+@contextlib.contextmanager
+def _spd_unrolled():
+    """While tracing a program for :mod:`physics.cosserat_fast`: the unrolled Cholesky."""
+    _UNROLLED[0] = True
+    try:
+        yield
+    finally:
+        _UNROLLED[0] = False
 
 
 def _cat_tip(pts: Tensor, tip: Tensor) -> list[Tensor]:

@@ -9,7 +9,9 @@ import torch
 
 from physics import CircularSection, Magnet, Material, Rod, SolverError, UniformField
 from physics.cosserat import CosseratRod, MagnetDipole, Segment
-from physics.cosserat_lanes import lane_step, lane_tables, shoot_lanes
+from physics import cosserat_fast
+from physics.cosserat_fast import fast_lm, flatten_field
+from physics.cosserat_lanes import lane_step, lane_tables, shoot_lanes, step_table
 from physics.cosserat_ode import shoot
 from physics.cosserat_inverse import fit_uniform_field, tip_angle
 from physics.cosserat_shooting import CosseratSolver, solve_static
@@ -151,6 +153,28 @@ def test_forward_jacobian_matches_finite_differences_with_field_gradient():
     tabs = lane_tables(s.params, rod.grid, L)
     r2, J2, Y2 = shoot_lanes(lane_step, x, s.params, tabs, L, s.scales, fld, 0.0, s.fd_step)
     assert (res.r - r2).abs().max() < 1e-13 and (res.J - J2).abs().max() < 1e-12 and (res.Y - Y2).abs().max() < 1e-14
+
+
+def test_fast_path_programs_match_the_reference_shooting(monkeypatch):
+    """The compiled path's programs (run eagerly here: component layout for batches, lanes for single
+    problems) give the reference solver's iterates, shape and Jacobian to round-off."""
+    sc = paper2_magnetic_rod()
+    Gm = torch.diag(torch.tensor([0.02, -0.01, -0.01], dtype=D))
+    B = torch.tensor([[0.004, 0.0015, 0.0], [0.003, -0.002, 0.001]], dtype=D)
+    solver = CosseratSolver(sc.rod)
+    near = sc.solve(solver, field=LinearField(B * 0.99, Gm))
+    ref = sc.solve(solver, field=LinearField(B, Gm), init=near)
+
+    def fast(self, x, prm, loads, field, t, its, lam0, live):
+        return fast_lm(self, x, prm, loads, field, t, its, lam0, live, step_table(prm, self.rod.grid), compiled=False)
+
+    monkeypatch.setattr(CosseratSolver, "_lm", fast)
+    for lanes_below in (1, 8):  # component layout, then lanes
+        monkeypatch.setattr(cosserat_fast, "LANES_BELOW", lanes_below)
+        out = sc.solve(solver, field=LinearField(B, Gm), init=near)
+        assert out.iterations.tolist() == ref.iterations.tolist() and bool(out.converged.all())
+        assert (out.y - ref.y).abs().max() < 1e-14 and (out.jacobian - ref.jacobian).abs().max() < 1e-12
+    assert flatten_field(lambda t, x: x) is None  # a plain function: the torch.compile path instead
 
 
 # ------------------------------------------------------------------------------------ gradients

@@ -10,6 +10,19 @@ depend on the solved pose. Solved (a) warm-started from the solution at a neighb
 Peer: the same model (equations, grid, magnets, scaling) as numpy fixed-step RK4 and
 ``scipy.optimize.least_squares(method='lm')`` (MINPACK, finite-difference Jacobian), written here.
 
+Where the time goes (compiled path, 1 thread, float64, measured with cProfile in this set-up; see
+physics.cosserat_fast). A warm solve is 3 LM iterations = 4 shots of 12 RK4-step calls plus 4 LM-update
+calls. At batch 1 (six tangent lanes) a step without magnets costs about 14 us of kernel plus a few us
+of call overhead (the torch.compile wrapper of the earlier path cost about 30 us a call, now bypassed),
+but the two steps that end at a magnet cost about 65 us each (the field hook's vector code splits
+into ~40 loops in inductor's kernel): about 2.7 ms a solve, i.e. ~360 Hz. The 1000 Hz target needs
+<= ~20 us per step all included; it is out of reach with one kernel call per grid step unless the
+magnet steps get as cheap as the others (a magnet-specific field kernel) or several steps are fused
+per call without the multi-minute compiles that caused. At batch 1024 the step without magnets is
+vectorised over the problems (0.66 ms for 1024 problems), but the magnet step (4.8 ms) and the LM update
+(4.3 ms, transposing layouts) take ~60 % of a batched solve: ~13,000 solves/s against the 20,000
+target. The >= 10x speed-up over the scipy peer and the tip agreement are met.
+
 Prints human-readable lines and, last, one JSON line. ``--quick`` shortens the timing windows and
 the peer's batch check; ``--no-compile`` times the eager path only (a first compile takes about a
 minute here, reported as ``compile_s`` and excluded from the steady-state figures).
