@@ -219,3 +219,30 @@ def test_agent_runs_as_sub_controller_2_of_the_switching_controller():
     res = run_episode(env, agent, seed=1, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
     assert res.disturbances == 1 and res.sc1_steps > 0  # Sub-controller 1 recaptured the dragged particle
     assert set(res.trajectory[:, 4]) >= {0, 1, 2} and res.decision_time_s > 0
+
+
+def test_n_step_windows_that_end_in_a_terminal_state_do_not_bootstrap():
+    from cmlearn.rl.training import make_replay_buffer
+    T = 12
+    term = torch.zeros(1, T, 1, dtype=torch.bool)
+    term[0, 5] = True
+    trunc = torch.zeros(1, T, 1, dtype=torch.bool)
+    trunc[0, 9] = True
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randint(0, 256, (1, T + 1, 2, 84, 84), dtype=torch.uint8, generator=g)
+    td = TensorDict({"observation": obs[:, :-1], "action": torch.nn.functional.one_hot(torch.zeros(1, T).long(), 4),
+                     "next": {"observation": obs[:, 1:], "reward": torch.ones(1, T, 1), "terminated": term,
+                              "truncated": trunc, "done": term | trunc}}, [1, T])
+    rb = make_replay_buffer(AgentTrainConfig(n_steps=3, gamma=0.9, buffer_size=64, network=dict(SMALL)))
+    rb.extend(td)
+    d = rb[:][0]  # one env, the first T - n_steps windows
+    # windows starting at 3, 4, 5 end at the terminal step 5: no bootstrap
+    assert d["next", "terminated"].flatten().tolist()[3:6] == [True, True, True]
+    assert not d["next", "terminated"].flatten()[:3].any() and not d["next", "terminated"].flatten()[6:].any()
+    assert torch.allclose(d["next", "reward"].flatten()[3:6], torch.tensor([2.71, 1.9, 1.0]))
+    loss = IQNLoss(make_iqn_actor(IQNConfig(**SMALL)), num_target_quantiles=4)
+    _, y = loss.target_quantiles(d)
+    torch.testing.assert_close(y[3:6], d["next", "reward"][3:6].expand(3, 4))  # exactly the summed rewards
+    assert not torch.allclose(y[:3], d["next", "reward"][:3].expand(3, 4))     # the others bootstrap
+    # a window cut by truncation (step 9) bootstraps from the observation after the truncated step
+    assert torch.equal(d["next", "observation"][8], obs[0, 10]) and not d["next", "terminated"][8]

@@ -12,7 +12,7 @@ switching controller, and atomic checkpoints with resume.
 Hyper-parameters start from the IQN paper (Dabney et al. 2018) and Rainbow (Hessel et al. 2018)
 as used in Rainbow-IQN (Toromanoff et al. 2019), changed for a 2-core CPU and a short, sparse task
 (see :class:`AgentTrainConfig`): N = N' = K = 32 quantiles (paper: 64, 64, 32), replay of 100k
-transitions (paper: 1M), target update every 2,000 updates (Rainbow: 8,000 frames = 2,000 updates
+transitions (paper: 1M), target update every 1,000 updates (Rainbow: 8,000 frames = 2,000 updates
 at one update per 4 frames), learning rate 1e-4 (Rainbow 6.25e-5) with Adam eps 1.5e-4, n = 3,
 gamma = 0.99, priority exponent 0.5, importance exponent annealed 0.4 -> 1, noisy sigma_0 0.5,
 gradient-norm clip 10, and a small network (:mod:`cmlearn.models.iqn`).
@@ -35,7 +35,8 @@ from cmlearn.models.iqn import IQNConfig, find_iqn_network, make_iqn_actor
 from .agent import IQNAgent, save_agent
 from .iqn_loss import IQNLoss
 
-__all__ = ["AgentTrainConfig", "TrainResult", "train_agent", "evaluate_agent", "TRAIN_CHECKPOINT_FORMAT"]
+__all__ = ["AgentTrainConfig", "TrainResult", "train_agent", "evaluate_agent", "make_replay_buffer",
+           "TRAIN_CHECKPOINT_FORMAT"]
 
 TRAIN_CHECKPOINT_FORMAT = "cmlearn-iqn-train/1"
 
@@ -63,7 +64,7 @@ class AgentTrainConfig:
     lr: float = 1e-4
     adam_eps: float = 1.5e-4
     grad_clip: float = 10.0
-    target_update: int = 2_000
+    target_update: int = 1_000
     num_quantiles: int = 32
     num_target_quantiles: int = 32
     kappa: float = 1.0
@@ -176,6 +177,21 @@ class _BatchedFactory:
         return make_batched_env(self.num_envs, seed=None, **self.env_kwargs)
 
 
+def make_replay_buffer(cfg: AgentTrainConfig):
+    """Prioritized replay of n-step transitions (``LazyTensorStorage`` of (envs, time) frames).
+
+    ``MultiStepTransform`` leaves its ``done_keys`` at step t; only ``done`` and ``truncated``
+    are declared as such here, so that ``("next", "terminated")`` is gathered like the next
+    observation, from the last step of the window: a window that ends in a terminal state then
+    does not bootstrap from the terminal observation (with the default keys it would)."""
+    from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer
+    from torchrl.envs.transforms import MultiStepTransform
+    return TensorDictPrioritizedReplayBuffer(
+        alpha=cfg.priority_alpha, beta=cfg.priority_beta, batch_size=cfg.batch_size,
+        storage=LazyTensorStorage(cfg.buffer_size, ndim=2),
+        transform=MultiStepTransform(cfg.n_steps, cfg.gamma, done_keys=["done", "truncated"]))
+
+
 def _save_train_state(path: Path, state: dict) -> None:
     import io
     buf = io.BytesIO()
@@ -189,8 +205,6 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
 
     ``maps`` (a list of :class:`~cmlearn.rl.maps.Map`) replaces the procedural training maps.
     ``stop_after_frames`` ends the run early (as an interruption would) after writing a checkpoint."""
-    from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer
-    from torchrl.envs.transforms import MultiStepTransform
     from torchrl.objectives import HardUpdate
     from torchrl.record.loggers.csv import CSVLogger
 
@@ -208,9 +222,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
                    num_target_quantiles=cfg.num_target_quantiles, kappa=cfg.kappa)
     updater = HardUpdate(loss, value_network_update_interval=cfg.target_update)
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
-    rb = TensorDictPrioritizedReplayBuffer(
-        alpha=cfg.priority_alpha, beta=cfg.priority_beta, batch_size=cfg.batch_size,
-        storage=LazyTensorStorage(cfg.buffer_size, ndim=2), transform=MultiStepTransform(cfg.n_steps, cfg.gamma))
+    rb = make_replay_buffer(cfg)
 
     frames = updates = 0
     wall_before = 0.0
