@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from .cosserat_lanes import _rhs as _lane_rhs
+from .cosserat_lanes import rk4_tangent_step
 from .cosserat_ode import _field_wrench
 
 __all__ = ["NZ", "step_program", "flatten_field", "compile_program"]
@@ -224,23 +224,7 @@ def lane_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float,
         h, ks, kb, vh, uh = r[0], r[1:4], r[4:7], r[7:10], r[10:13]
         f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
 
-        def ax(a, c, b):
-            return tuple(ai + c * bi for ai, bi in zip(a, b))
-
-        k1, d1 = _lane_rhs(y, tg, ks, kb, vh, uh, f, tau)
-        k2, d2 = _lane_rhs(ax(y, h / 2, k1), ax(tg, h / 2, d1), ks, kb, vh, uh, f, tau)
-        k3, d3 = _lane_rhs(ax(y, h / 2, k2), ax(tg, h / 2, d2), ks, kb, vh, uh, f, tau)
-        k4, d4 = _lane_rhs(ax(y, h, k3), ax(tg, h, d3), ks, kb, vh, uh, f, tau)
-        y = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
-        tg = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(tg, d1, d2, d3, d4)]
-        qn = torch.sqrt(y[3] * y[3] + y[4] * y[4] + y[5] * y[5] + y[6] * y[6])
-        qh = [c / qn for c in y[3:7]]
-        dot = sum(a * b for a, b in zip(qh, tg[3:7]))
-        tg[3:7] = [(dc - c * dot) / qn for c, dc in zip(qh, tg[3:7])]
-        y[3:7] = qh
-        for i in range(3):
-            y[7 + i] = y[7 + i] - F[i]
-            y[10 + i] = y[10 + i] - M[i]
+        y, tg = rk4_tangent_step(y, tg, h, ks, kb, vh, uh, f, tau, F, M)
         if magnets:
             fl = row.unbind(-1)[25:]
             y0 = [c.expand(Z.shape[:-1])[:, 0] for c in y]

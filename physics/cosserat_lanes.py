@@ -98,6 +98,30 @@ class LaneTables(NamedTuple):
     magnet_rows: tuple[bool, ...]
 
 
+
+def rk4_tangent_step(y, tg, h, ks, kb, vh, uh, f, tau, F, M):
+    """One RK4 step of the state components ``y`` (13) and their tangents ``tg``, then the quaternion
+    renormalised (tangent projected accordingly) and the point force ``F`` / moment ``M`` at the
+    step's end subtracted from n and m. Returns two lists of components."""
+    def ax(a, c, b):
+        return tuple(ai + c * bi for ai, bi in zip(a, b))
+
+    k1, d1 = _rhs(y, tg, ks, kb, vh, uh, f, tau)
+    k2, d2 = _rhs(ax(y, h / 2, k1), ax(tg, h / 2, d1), ks, kb, vh, uh, f, tau)
+    k3, d3 = _rhs(ax(y, h / 2, k2), ax(tg, h / 2, d2), ks, kb, vh, uh, f, tau)
+    k4, d4 = _rhs(ax(y, h, k3), ax(tg, h, d3), ks, kb, vh, uh, f, tau)
+    y = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
+    tg = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(tg, d1, d2, d3, d4)]
+    qn = torch.sqrt(y[3] * y[3] + y[4] * y[4] + y[5] * y[5] + y[6] * y[6])
+    qh = [c / qn for c in y[3:7]]
+    dot = sum(a * b for a, b in zip(qh, tg[3:7]))
+    tg[3:7] = [(dc - c * dot) / qn for c, dc in zip(qh, tg[3:7])]
+    y[3:7] = qh
+    for i in range(3):
+        y[7 + i] = y[7 + i] - F[i]
+        y[10 + i] = y[10 + i] - M[i]
+    return y, tg
+
 def _static(grid: CosseratGrid, dtype, device):
     """Grid-only parts, cached: point-load gather matrix (S+1, P), magnet flags (S+1, K), and whether
     the base node has loads (then a zero-length first row applies them)."""
@@ -162,25 +186,7 @@ def lane_step(Yp: Tensor, Yt: Tensor, step: Tensor, ld: Tensor, flags: Tensor, m
     lrow = ld.unsqueeze(-2).unbind(-1)
     h, ks, kb, vh, uh = row[0], row[1:4], row[4:7], row[7:10], row[10:13]
     f, tau, F, M = lrow[0:3], lrow[3:6], lrow[6:9], lrow[9:12]
-    y, tg = Yp.unbind(-1), Yt.unbind(-1)
-
-    def ax(a, c, b):
-        return tuple(ai + c * bi for ai, bi in zip(a, b))
-
-    k1, d1 = _rhs(y, tg, ks, kb, vh, uh, f, tau)
-    k2, d2 = _rhs(ax(y, h / 2, k1), ax(tg, h / 2, d1), ks, kb, vh, uh, f, tau)
-    k3, d3 = _rhs(ax(y, h / 2, k2), ax(tg, h / 2, d2), ks, kb, vh, uh, f, tau)
-    k4, d4 = _rhs(ax(y, h, k3), ax(tg, h, d3), ks, kb, vh, uh, f, tau)
-    y = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
-    tg = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(tg, d1, d2, d3, d4)]
-    qn = torch.sqrt(y[3] * y[3] + y[4] * y[4] + y[5] * y[5] + y[6] * y[6])
-    qh = [c / qn for c in y[3:7]]
-    dot = sum(a * b for a, b in zip(qh, tg[3:7]))
-    tg[3:7] = [(dc - c * dot) / qn for c, dc in zip(qh, tg[3:7])]
-    y[3:7] = qh
-    for i in range(3):
-        y[7 + i] = y[7 + i] - F[i]
-        y[10 + i] = y[10 + i] - M[i]
+    y, tg = rk4_tangent_step(Yp.unbind(-1), Yt.unbind(-1), h, ks, kb, vh, uh, f, tau, F, M)
     Yp, Yt = torch.stack(y, -1), torch.stack(tg, -1)
     K = flags.shape[-1]
     if K:
