@@ -2,7 +2,9 @@
 
 Runs both from the scene's initial state, prints per-axis maximum/mean absolute errors of the
 nodes of interest (mm and % of rod length), an RMSE(t) summary, the wall time of each and the
-speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summary.json``.
+speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summary.json``. On the
+magnetic rod (``magnetic_rod``, ``magnetic_rod_heldout``) it also prints the magnets' orientation errors
+in degrees of the surrogate (closed loop) and of the static Cosserat model, and the latter's wall time.
 """
 from __future__ import annotations
 
@@ -47,6 +49,8 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
     from .surrogate.evaluate import interest_slots
 
     task = task_for_scene(scene_name)
+    if task.custom:  # e.g. the magnetic rod (adds magnet orientation errors in degrees)
+        return task.hook("compare_scene")(task, scene_name, checkpoint, duration)
     scene = task.scene_by_name(scene_name)
     if duration:
         from dataclasses import replace
@@ -126,8 +130,13 @@ def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = N
                                         f"mean {e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
         r = node["rmse_mm"]
         print(f"    RMSE(t): mean {r['mean']:.2f} mm, max {r['max']:.2f} mm, final {r['final']:.2f} mm")
+    for who, per_magnet in res.get("orientation_deg", {}).items():
+        for magnet, e in per_magnet.items():
+            print(f"  {who} {magnet} magnet orientation: " + "  ".join(
+                f"about {ax} max {e[ax]['max_deg']:.2f} deg, mean {e[ax]['mean_deg']:.2f} deg" for ax in "xyz"))
     print(f"  wall time: LGVI {res['lgvi_wall_s']:.2f} s, surrogate {res['surrogate_wall_s']:.3f} s, "
-          f"speed-up {res['speedup']:.0f}x")
+          f"speed-up {res['speedup']:.0f}x" + (f"; static Cosserat {res['cosserat_wall_s']:.2f} s"
+                                               if "cosserat_wall_s" in res else ""))
     paths = _plots(res, out)
     summary = {k: v for k, v in res.items() if not k.startswith("_")}
     js = out / "summary.json"

@@ -113,7 +113,7 @@ class Scene:
         object.__setattr__(self, "gravity", g)
         if self.loads.gravity is None:
             object.__setattr__(self, "loads", replace(self.loads, gravity=g if any(g) else None))
-        elif tuple(float(x) for x in torch.as_tensor(self.loads.gravity).tolist()) != g:
+        elif tuple(float(x) for x in torch.as_tensor(self.loads.gravity, dtype=torch.float64).tolist()) != g:
             raise ValueError("Scene.loads.gravity disagrees with Scene.gravity")
         n = self.rod.n_nodes
         nodes = tuple(int(i) for i in self.nodes_of_interest) or (n - 1,)

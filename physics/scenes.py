@@ -3,7 +3,8 @@
 ``SCENES`` maps each name to a :class:`~physics.scene.Scene`; :func:`get_scene` looks one up.
 Every scene is in SI; its ``description`` says what was chosen where the thesis is silent and
 its ``thesis`` dict keeps the printed parameters (Tables I.3-I.7, converted to SI) and errors
-(Table I.8) for comparison. Paper II scenes live in :mod:`physics.scenes_paper2`.
+(Table I.8) for comparison. Paper II scenes live in :mod:`physics.scenes_paper2` (Simulations I-III)
+and :mod:`physics.scenes_magnetic_rod` (the two-magnet rod in the six-coil eMNS).
 
 Frames (Paper I). The world frame is the thesis's (E1, E2, E3) with the undeformed rod along
 +E3 from a clamp at the origin (identity base frame). The aluminium rods hang: gravity acts along
@@ -33,7 +34,7 @@ from .loads import Loads, UniformField
 from .rod import CircularSection, Magnet, Material, Rod, SquareSection
 from .scene import G_EARTH, Scene, dipole_moment, table_to_si
 from .shapes import bent_cantilever, cantilever_rotation_for_offset
-from . import scenes_paper2
+from . import scenes_magnetic_rod, scenes_paper2
 
 __all__ = ["SCENES", "get_scene", "scene_names", "UnknownSceneError", "RotatingField", "SweptField"]
 
@@ -292,7 +293,7 @@ def pdms_square_two_magnets() -> Scene:
 
 # ---------------------------------------------------------------------------------------- registry
 _BUILDERS = (al_inplane, al_3d, pdms_inplane, pdms_tip_magnet, pdms_circular, pdms_square_two_magnets,
-             *scenes_paper2.BUILDERS)
+             *scenes_paper2.BUILDERS, *scenes_magnetic_rod.BUILDERS)
 
 SCENES: dict[str, Scene] = {s.name: s for s in (b() for b in _BUILDERS)}
 

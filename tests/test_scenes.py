@@ -13,7 +13,8 @@ from physics.scenes import SCENES, UnknownSceneError, get_scene, scene_names
 from physics.scenes_paper2 import NodePulse, SquareTipForce
 
 PAPER1 = ["al_inplane", "al_3d", "pdms_inplane", "pdms_tip_magnet", "pdms_circular", "pdms_square_two_magnets"]
-PAPER2 = ["ellipse", "ellipse_horizontal", "square_tracking", "semicircle", "semicircle_heldout"]
+PAPER2 = ["ellipse", "ellipse_horizontal", "square_tracking", "semicircle", "semicircle_heldout", "magnetic_rod",
+          "magnetic_rod_heldout"]
 G = 9.81
 
 

@@ -75,6 +75,8 @@ def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, dur
     scene's duration or a shorter ``duration`` (tests)."""
     from dataclasses import replace
     task = get_task(task) if isinstance(task, str) else task
+    if task.custom:
+        return task.hook("simulate")(task, n_variants, seed, duration)
     scene = task.base_scene()
     if duration:
         scene = replace(scene, duration=duration)

@@ -15,6 +15,11 @@ the nodes that carry an input wrench, and a seeded generator of training variant
 * Simulation III (``semicircle``): random force pulses on the middle node, direction uniform on the
   sphere (so out-of-plane motion is seen), 0-100 mN, constant or cos(pi t) shaped, on/off on the
   surrogate's time grid. The printed held-out load is not one of them.
+* The magnetic rod (``magnetic_rod``, Data-set IV): random coil-current profiles, minimum-jerk moves
+  (0.6-2 s) between current vectors uniform in [-4, 4] A per coil (one in five back to zero), with
+  holds of 0.1-1.2 s, from zero current. The held-out profile (sums of slow sinusoids, never
+  holding) is of another kind. Its tracked points include two markers per magnet and its data come
+  from :mod:`cmlearn.data.magnetic` (``custom``).
 
 Variant 0 is always the printed scene itself: its first 60 % trains and its last 40 % is the
 "seen scene, unseen samples" evaluation of the thesis.
@@ -81,7 +86,12 @@ def _pulse_fn(n_nodes, node, vector, t0, t1, shape):
 @dataclass(frozen=True)
 class SurrogateTask:
     """See the module docstring. ``variants(n, seed)`` returns ``{"p": (V,n,3), "R": ..., "force": fn}``
-    for V = n variants (the first the printed scene); ``heldout`` names the held-out scenes."""
+    for V = n variants (the first the printed scene); ``heldout`` names the held-out scenes.
+
+    ``links`` overrides the model's neighbours of some tracked ids: ``{id: (left, right)}`` (default: the
+    previous and next tracked id, none after the last). ``custom`` names a module that replaces the
+    node-position physics for tasks that need more (it provides ``simulate``, ``evaluate``,
+    ``run_scene``, ``short_check`` and ``compare_scene``; see :mod:`cmlearn.surrogate.magnetic`)."""
 
     name: str
     scene: str
@@ -93,6 +103,8 @@ class SurrogateTask:
     variants: Callable[[Scene, int, int], dict] | None = None
     description: str = ""
     extra_scenes: dict = field(default_factory=dict)
+    links: dict = field(default_factory=dict)
+    custom: str = ""
 
     def __post_init__(self):
         if not (self.delta > 0 and math.isfinite(self.delta)):
@@ -114,6 +126,27 @@ class SurrogateTask:
     def tracked(self) -> tuple[int, ...]:
         """All nodes the surrogate sees: anchors and modelled nodes, in order along the rod."""
         return tuple(sorted(set(self.modeled) | set(self.anchors)))
+
+    def hook(self, name: str):
+        """The ``custom`` module's function ``name`` (None for a plain task)."""
+        if not self.custom:
+            return None
+        import importlib
+        return getattr(importlib.import_module(self.custom), name)
+
+    def model_config(self, **kw):
+        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides."""
+        from cmlearn.models import NodeLSTMConfig
+        cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, **kw)
+        if not self.links:
+            return cfg
+        pos = {n: i for i, n in enumerate(self.tracked)}
+        left, right = list(cfg.left), list(cfg.right)
+        for j, m in enumerate(self.modeled):
+            if m in self.links:
+                left[j], right[j] = (pos[x] for x in self.links[m])
+        from dataclasses import replace
+        return replace(cfg, left=tuple(left), right=tuple(right))
 
     def record_every(self, scene: Scene) -> int:
         k = self.delta / scene.dt
@@ -213,6 +246,34 @@ def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -
             "force": BatchedNodeForce(fns, rod.n_nodes), "info": info}
 
 
+# ------------------------------------------------------------------------------ magnetic rod (Data-set IV)
+_CURRENT_LIMIT = 4.0  # A per coil in training profiles
+
+
+def _magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
+    from physics.coil_currents import BatchedCurrents, MinJerkCurrents
+    g = torch.Generator().manual_seed(seed)
+    printed = scene.loads.field.currents
+    C = printed(0.0).shape[-1]
+    profiles, info = [printed], [{"profile": "printed (set-point moves to 5 mT fields)"}]
+
+    def u(a, b):
+        return a + (b - a) * float(torch.rand((), generator=g))
+    while len(profiles) < n:
+        pts, moves, holds = [torch.zeros(C, dtype=torch.float64)], [], [u(0.1, 1.0)]
+        t = holds[0]
+        while t < scene.duration:
+            back = float(torch.rand((), generator=g)) < 0.2
+            pts.append(torch.zeros(C, dtype=torch.float64) if back else
+                       (torch.rand(C, generator=g, dtype=torch.float64) * 2 - 1) * _CURRENT_LIMIT)
+            moves.append(u(0.6, 2.0))
+            holds.append(u(0.1, 1.2))
+            t += moves[-1] + holds[-1]
+        profiles.append(MinJerkCurrents(torch.stack(pts), moves, holds))
+        info.append({"setpoints": torch.stack(pts).tolist(), "moves": moves, "holds": holds})
+    return {"currents": BatchedCurrents(profiles), "info": info}
+
+
 TASKS = {
     "ellipse": SurrogateTask(
         name="ellipse", scene="ellipse", delta=0.001,
@@ -234,6 +295,14 @@ TASKS = {
         heldout=("semicircle_heldout",), variants=_semicircle_variants,
         description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
                     "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
+    "magnetic_rod": SurrogateTask(
+        name="magnetic_rod", scene="magnetic_rod", delta=0.02,
+        modeled=(2, 4, 5, 7, 9, 10, 11, 12, 13, 14), anchors=(0,), wrench_nodes=(4, 5, 9, 10),
+        heldout=("magnetic_rod_heldout",), variants=_magnetic_variants,
+        links={11: (4, 5), 12: (4, 5), 13: (9, 10), 14: (9, 10)}, custom="cmlearn.surrogate.magnetic",
+        description="Data-set IV: the two magnet blocks (end nodes 5, 6 and 10, 11 of 11, and two markers on "
+                    "each 20 mm out along its E1 and E3 axes, ids 11-14), nodes 3 and 8 between them, the clamp as anchor; the magnets' "
+                    "torque and force as equivalent forces on the block end nodes; 20 ms step (50 Hz)."),
 }
 
 

@@ -66,7 +66,11 @@ class Surrogate:
     @torch.no_grad()
     def run_scene(self, scene, duration: float | None = None) -> tuple[Tensor, float]:
         """Free-running prediction of the tracked nodes (T, n_tracked, 3), T = steps + 1 (from rest in the
-        scene's initial shape), and the wall time of the rollout including the force evaluation."""
+        scene's initial shape), and the wall time of the rollout including the force evaluation. A task with
+        its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead."""
+        hook = self.task.hook("run_scene")
+        if hook is not None:
+            return hook(self, scene, duration)
         n = int(round((duration or scene.duration) / self.task.delta))
         p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
         t0 = time.perf_counter()

@@ -73,6 +73,8 @@ def short_check(engine, scene_name: str, duration: float) -> dict:
     from cmlearn.data.generate import scene_rollout
 
     task = engine.task
+    if task.custom:
+        return task.hook("short_check")(engine, scene_name, duration)
     scene = replace(task.scene_by_name(scene_name), duration=duration)
     ref, _, _ = scene_rollout(task, scene)
     pred, _ = engine.run_scene(scene)

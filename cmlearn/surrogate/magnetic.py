@@ -1,0 +1,263 @@
+"""The magnetic-rod surrogate (Paper II, Data-set IV, Table II.1): closed-loop rollout, orientation errors
+in degrees and the static Cosserat model as the baseline, against the LGVI.
+
+Orientation error. For a predicted magnet rotation ``R_p`` and the reference ``R_r`` (both from the
+block's tracked points, :func:`cmlearn.data.magnetic.magnet_frames`), the error is the rotation vector
+``log(R_p R_r^T)`` in world coordinates, in degrees: its x, y, z components are the error angles about
+the world axes (the rod hangs along -z, so x and y are the swing, z the turn about the vertical).
+Per axis we report the maximum and the mean of the absolute value over the samples, as Table II.1.
+
+Free-running means closed loop: each step's input wrench (the magnets' torque and force) is computed
+from the surrogate's own last predicted frame and the coil currents, so the surrogate needs nothing
+from the physics but the currents. One-step predictions use the true history and wrench.
+
+The Cosserat baseline (:func:`cosserat_orientations`) solves the static rod of
+:func:`physics.scenes_cosserat.paper2_magnetic_rod` in the same eMNS at each sample time with that
+time's currents, warm-started from the previous sample (quasi-static, as the thesis ran it).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from cmlearn.data.magnetic import magnet_frames, rollout, simulate, tracked_points, wrench_inputs
+from cmlearn.data.windows import node_wrench, split_ranges
+from cmlearn.eval.metrics import axis_errors, rmse_t
+
+from .evaluate import interest_slots, one_step
+
+__all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "cosserat_orientations",
+           "evaluate", "run_scene", "short_check", "compare_scene"]
+
+MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
+
+
+def orientation_errors(R_pred: Tensor, R_ref: Tensor) -> Tensor:
+    """World-frame error angles (..., 3) in degrees: the rotation vector of ``R_pred R_ref^T``."""
+    from physics.lie import so3_log
+    if R_pred.shape[-2:] != (3, 3) or R_ref.shape[-2:] != (3, 3):
+        raise ValueError(f"R_pred {tuple(R_pred.shape)} and R_ref {tuple(R_ref.shape)} must both be (..., 3, 3)")
+    torch.broadcast_shapes(R_pred.shape, R_ref.shape)
+    return so3_log(R_pred.double() @ R_ref.double().transpose(-1, -2)) * (180.0 / math.pi)
+
+
+def orientation_stats(err: Tensor) -> dict:
+    """Per magnet and axis, max and mean absolute error (deg) of errors (T, K, 3)."""
+    a = err.abs()
+    return {name: {ax: {"max_deg": float(a[:, k, i].max()), "mean_deg": float(a[:, k, i].mean())}
+                   for i, ax in enumerate("xyz")} for k, name in enumerate(MAGNETS)}
+
+
+@torch.no_grad()
+def closed_loop(model, task, rod, emns, hist: Tensor, currents, k0: int, n_steps: int, ref: Tensor) -> Tensor:
+    """Free-running frames (B, n_steps, n_tracked, 3) after ``hist`` (B, eta+1, n_tracked, 3) ending at frame
+    ``k0``; the step from frame k uses the currents at ``(k + 1/2) delta`` and the wrench of frame k."""
+    W, idx = model.config.eta + 1, model.idx_modeled
+    frames = list(hist.float().unbind(1))
+    out = []
+    for h in range(n_steps):
+        t = torch.tensor((k0 + h + 0.5) * task.delta, dtype=torch.float64)
+        I = torch.as_tensor(currents(t), dtype=torch.float64)
+        w = wrench_inputs(task, rod, emns, frames[-1].double(), I).float()
+        pk = model(torch.stack(frames[-W:], 1), node_wrench(w, task.wrench_nodes, task.modeled), ref)
+        nxt = frames[-1].index_copy(1, idx, pk)
+        frames.append(nxt)
+        out.append(nxt)
+    return torch.stack(out, 1)
+
+
+def _hook(field_model, I: Tensor):
+    """Field hook with fixed currents; non-finite trial positions (a diverging shooting step) get a NaN
+    field, so that the solver rejects the step instead of the coil model raising."""
+    def hook(_t, x):
+        ok = torch.isfinite(x).all(-1, keepdim=True)
+        B, dB = field_model.field_and_gradient(torch.where(ok, x, torch.zeros_like(x)), I)
+        return B.masked_fill(~ok, math.nan), dB.masked_fill(~ok[..., None], math.nan)
+    return hook
+
+
+def cosserat_orientations(currents, times, field_model, n_nodes: int = 13):
+    """Magnet rotations (T, 2, 3, 3) of the static Cosserat rod at ``times`` (s) with ``currents(t)``, each
+    solve warm-started from the previous one; also the solver wall time (s)."""
+    from physics.scenes_cosserat import paper2_magnetic_rod
+    sc = paper2_magnetic_rod(n_nodes)
+    solver = sc.solver()
+    nodes = list(sc.rod.grid.magnet_nodes)
+    out, sol = [], None
+    t0 = time.perf_counter()
+    for t in times:
+        I = torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
+        sol = sc.solve(solver, field=_hook(field_model, I), init=sol, load_steps=4 if sol is None else 1)
+        out.append(sol.R[..., nodes, :, :])
+    return torch.stack(out), time.perf_counter() - t0
+
+
+def _position_metrics(pred: Tensor, ref: Tensor, slots, length: float) -> dict:
+    r = rmse_t(pred[:, slots[0]], ref[:, slots[0]])
+    return {"node": axis_errors(pred[:, slots[0]], ref[:, slots[0]], length),
+            "all_nodes_max_mm": float((pred[:, slots] - ref[:, slots]).abs().max()) * 1e3,
+            "rmse_mean_mm": float(r.mean()) * 1e3, "rmse_max_mm": float(r.max()) * 1e3}
+
+
+def cached_cosserat(task, scene, times, data_dir: str | Path | None):
+    """:func:`cosserat_orientations` of ``scene``'s currents at ``times``, cached in ``data_dir`` (it does not
+    depend on any surrogate and takes minutes)."""
+    from cmlearn.data.generate import data_hash
+    path = None
+    if data_dir is not None:
+        key = data_hash(torch.tensor(times, dtype=torch.float64))[:8]
+        path = Path(data_dir) / f"{task.name}_{scene.name}_cosserat_{len(times)}_{key}.pt"
+        if path.exists():
+            blob = torch.load(path, weights_only=True)
+            return blob["R"], float(blob["wall_s"])
+    R, wall = cosserat_orientations(scene.loads.field.currents, times, scene.loads.field.emns)
+    if path is not None:
+        import io
+
+        from cmlearn.io import atomic_write
+        buf = io.BytesIO()
+        torch.save({"R": R, "wall_s": wall}, buf)
+        atomic_write(path, lambda f: f.write(buf.getvalue()))
+    return R, wall
+
+
+def _case(model, task, scene, pos: Tensor, wr: Tensor, start: int, pad: int = 0, cosserat: bool = True,
+          data_dir: str | Path | None = None) -> dict:
+    """Both surrogate modes (and the Cosserat model) on frames start+1 .. T-1 of ``pos`` (T, n_tracked, 3),
+    whose first ``pad`` frames are copies of the rest frame before t = 0 (frame k is at (k - pad) delta)."""
+    rod, emns, cur = scene.rod, scene.loads.field.emns, scene.loads.field.currents
+    W = model.config.eta + 1
+    ref = pos[start + 1:].double()
+    preds = {"one_step": one_step(model, pos, wr, start).double(),
+             "free_running": closed_loop(model, task, rod, emns, pos[None, start - W + 1:start + 1], cur, start - pad,
+                                         pos.shape[0] - 1 - start, pos[:1].float())[0].double()}
+    _, R_ref, _ = magnet_frames(task, rod, ref)
+    slots = interest_slots(task, scene)
+    out = {mode: _position_metrics(p, ref, slots, rod.length) for mode, p in preds.items()}
+    out["orientation_deg"] = {mode: orientation_stats(orientation_errors(magnet_frames(task, rod, p)[1], R_ref))
+                              for mode, p in preds.items()}
+    if cosserat:
+        times = [(k - pad) * task.delta for k in range(start + 1, pos.shape[0])]
+        R_cos, wall = cached_cosserat(task, scene, times, data_dir)
+        out["orientation_deg"]["cosserat"] = orientation_stats(orientation_errors(R_cos, R_ref))
+        out["cosserat_wall_s"] = wall
+    return out
+
+
+def _heldout_reference(task, name: str, duration: float | None, data_dir: str | Path):
+    """LGVI reference of a held-out scene (cached in ``data_dir``, it takes minutes)."""
+    from cmlearn.data.generate import data_hash
+    scene = task.scene_by_name(name)
+    d = duration or scene.duration
+    path = Path(data_dir) / f"{task.name}_{name}_{d:g}s_ref.pt"
+    if path.exists():
+        blob = torch.load(path, weights_only=True)
+        if data_hash(blob["points"], blob["wrench"]) == blob["hash"]:
+            return blob["points"], blob["wrench"], blob["lgvi_wall_s"]
+    pts, W, wall = rollout(task, scene, duration=d)
+    pts, W = pts.float(), W.float()
+    from cmlearn.io import atomic_write
+    import io
+    buf = io.BytesIO()
+    torch.save({"points": pts, "wrench": W, "lgvi_wall_s": wall, "hash": data_hash(pts, W)}, buf)
+    atomic_write(path, lambda f: f.write(buf.getvalue()))
+    return pts, W, wall
+
+
+def evaluate(model, task, data: dict, args) -> dict:
+    """Metrics stored with a checkpoint: the printed scene's last 40 % (true history at the cut) and the
+    held-out scenes from rest, surrogate one-step and free-running (closed loop) and the Cosserat model."""
+    meta = data["meta"]
+    scene = task.base_scene()
+    duration = getattr(args, "duration", 0.0) or None
+    if duration:
+        scene = replace(scene, duration=duration)
+    pos = data["positions"][0]
+    wr = node_wrench(data["wrench"][0], meta["wrench_nodes"], meta["modeled"])
+    cut = split_ranges(meta["n_variants"], pos.shape[0])["test"][0][1]
+    data_dir = getattr(args, "data_dir", "data")
+    metrics = {"seen_last40": _case(model, task, scene, pos, wr, cut, data_dir=data_dir)}
+    eta = model.config.eta
+    for name in task.heldout:
+        held = task.scene_by_name(name)
+        p, W, wall = _heldout_reference(task, name, duration, getattr(args, "data_dir", "data"))
+        Wk = node_wrench(W, task.wrench_nodes, task.modeled)
+        p_hist = torch.cat([p[:1].expand(eta, -1, -1), p], 0)
+        W_hist = torch.cat([torch.zeros(eta, *Wk.shape[1:]), Wk], 0)
+        metrics[name] = _case(model, task, replace(held, duration=duration or held.duration), p_hist, W_hist, eta,
+                              pad=eta, data_dir=data_dir)
+        metrics[name]["lgvi_wall_s"] = wall
+    return metrics
+
+
+def initial_points(task, scene) -> Tensor:
+    cfg = scene.initial_configuration()
+    return tracked_points(task, scene.rod, cfg["p"], cfg["R"]).float()
+
+
+@torch.no_grad()
+def run_scene(engine, scene, duration: float | None = None) -> tuple[Tensor, float]:
+    """Closed-loop surrogate on ``scene`` from rest: tracked points (T, n_tracked, 3) and the wall time."""
+    task = engine.task
+    n = int(round((duration or scene.duration) / task.delta))
+    p0 = initial_points(task, scene)
+    t0 = time.perf_counter()
+    hist = p0[None, None].expand(1, engine.eta + 1, -1, -1)
+    fr = closed_loop(engine.model, task, scene.rod, scene.loads.field.emns, hist, scene.loads.field.currents,
+                     0, n, p0[None])
+    wall = time.perf_counter() - t0
+    return torch.cat([p0[None], fr[0]]), wall
+
+
+def short_check(engine, scene_name: str, duration: float) -> dict:
+    """Closed-loop surrogate against the LGVI for the first ``duration`` s: the tip's maximum position
+    error (mm) and the largest magnet orientation error (deg)."""
+    task = engine.task
+    scene = replace(task.scene_by_name(scene_name), duration=duration)
+    ref, _, _ = rollout(task, scene)
+    pred, _ = engine.run_scene(scene)
+    slot = interest_slots(task, scene)[0]
+    err = orientation_errors(magnet_frames(task, scene.rod, pred.double())[1],
+                             magnet_frames(task, scene.rod, ref.double())[1])
+    return {"scene": scene_name, "duration": duration,
+            "max_err_mm": float((pred[:, slot].double() - ref[:, slot].double()).abs().max()) * 1e3,
+            "max_orientation_err_deg": float(err.abs().max())}
+
+
+def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None) -> dict:
+    """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there, plus the magnets'
+    orientation errors (deg) of the surrogate (closed loop) and of the static Cosserat model."""
+    from cmlearn.compare import find_checkpoint
+
+    from .engine import Surrogate
+    scene = task.scene_by_name(scene_name)
+    if duration:
+        scene = replace(scene, duration=duration)
+    engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
+    p_ref, _, wall_ref = rollout(task, scene)
+    p_sur, wall_sur = engine.run_scene(scene)
+    p_ref = p_ref.float()
+    rod, L = scene.rod, scene.rod.length
+    slots = interest_slots(task, scene)
+    labels = [lab for n, lab in zip(scene.nodes_of_interest, scene.node_labels) if n in task.tracked]
+    t = torch.arange(p_ref.shape[0]) * task.delta
+    nodes = {}
+    for slot, label in zip(slots, labels):
+        r = rmse_t(p_sur[:, slot], p_ref[:, slot])
+        nodes[label] = {"errors": axis_errors(p_sur[:, slot], p_ref[:, slot], L),
+                        "rmse_mm": {"mean": float(r.mean()) * 1e3, "max": float(r.max()) * 1e3,
+                                    "final": float(r[-1]) * 1e3}}
+    R_ref = magnet_frames(task, rod, p_ref[1:].double())[1]
+    orient = {"surrogate": orientation_stats(orientation_errors(magnet_frames(task, rod, p_sur[1:].double())[1], R_ref))}
+    R_cos, wall_cos = cosserat_orientations(scene.loads.field.currents, t[1:].tolist(), scene.loads.field.emns)
+    orient["cosserat"] = orientation_stats(orientation_errors(R_cos, R_ref))
+    return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
+            "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur, "cosserat_wall_s": wall_cos,
+            "speedup": wall_ref / wall_sur, "nodes": nodes, "orientation_deg": orient,
+            "checkpoint_metrics": engine.meta.get("metrics", {}),
+            "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}

@@ -1,0 +1,226 @@
+"""The Paper II magnetic rod (thesis II.5, Data-set IV) as a dynamic LGVI scene in the six-coil eMNS.
+
+The rod is the one :func:`physics.scenes_cosserat.paper2_magnetic_rod` chose for the static Cosserat
+model: 50 mm of PMC-770 (E 2.5 MPa, rho 1000, nu 0.5), 2 mm x 2 mm square section, with two
+2 x 2 x 3 mm NdFeB blocks in line, the proximal (N42, 0.0124 A m^2) over 22-25 mm and the distal
+(N45, 0.0128 A m^2) over 47-50 mm, both magnetised along body +E3; clamped at the origin hanging
+down (body E3 = world -z, the base frame a half turn about x), gravity along -z. It sits in the
+default six-coil eMNS (:func:`physics.magnetics.emns.six_coil_emns`), driven by time-varying coil
+currents; the field reaches the magnets through :class:`physics.coil_currents.CoilField`.
+
+Discretisation (chosen). 10 elements: each PMC part in 4 elements of 5.5 mm, each magnet one 3 mm
+element, so the magnet blocks are whole elements, as in the Cosserat grid. The LGVI rod has one
+material, so a magnet element is PMC whose bending and torsion stiffness C2 is multiplied by 20
+(the block is rigid; 20x makes its bending compliance 0.3 % of the rod's while keeping the time
+step; its axial and shear stiffness, already ~1e-4 strain here, stay PMC's). A magnet is a point
+mass of the NdFeB minus the PMC it replaces ((7000 - 1000) kg/m^3 x 12 mm^3 = 72 mg) at the block
+centre (xi = 0.5), carrying its dipole and the block's rotational inertia. Rotational inertia (rod
+and blocks) is mass-scaled by 16 so that dt = 8e-5 s is stable (dt/dt_max 0.71); the first bending
+frequency (4.15 Hz) changes by 0.8 %, the second (25.8 Hz) by 5 %, the first torsion mode drops from
+95 to 24 Hz; the motion is slow (set-point moves), where rotational inertia plays little part.
+Viscous damping 0.107 N s/m^2 and rotational damping 1.28e-5 N m s/m: 25 % of critical in the first
+bending mode, 48 % in the first torsion mode, 8 % in the second bending mode (:func:`modal_damping`),
+so that the rod settles within a hold and no fast torsion rings between the 50 Hz samples.
+
+Currents (chosen; the thesis's experiment moved quasi-statically through 669 samples in 340 s).
+Printed profile (``magnetic_rod``, 24 s): from rest at zero current, minimum-jerk moves of 1.5 s
+with 1 s holds through the currents that give a 5 mT field at the rod's middle (0, 0, -36 mm) along
++x, +x+y, +y, -x, -x-y, -y, +x-y, +x again and back to zero (each the minimum-norm current vector
+for the field alone, at most 2.7 A); at 5 mT along +x the proximal magnet settles 36 deg and the
+distal 49 deg from the vertical. Held-out (``magnetic_rod_heldout``, 24 s): per coil a sum of three
+sinusoids (0.06-0.25 Hz) faded in over 2 s, at most 4 A, a kind of profile never drawn for training
+(training draws minimum-jerk moves between random current vectors; see :mod:`cmlearn.data.tasks`);
+the magnets swing up to 50 and 56 deg and at two moments snap over quickly (a fold of the
+equilibrium), where a static model cannot follow. The rod starts at rest hanging straight under
+gravity (static equilibrium; zero current at t = 0).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .coil_currents import CoilField, MinJerkCurrents, SinusoidCurrents
+from .loads import Loads
+from .magnetics.emns import six_coil_emns
+from .rod import Magnet, Rod, SquareSection
+from .scene import G_EARTH, Scene, dipole_moment
+from .scenes_cosserat import BR_N42, BR_N45, NDFEB, PMC770
+
+__all__ = ["BUILDERS", "MagnetBlockRod", "modal_damping", "magnetic_rod", "magnetic_rod_heldout", "magnetic_rod_scene", "printed_currents",
+           "heldout_currents", "eMNS", "MAGNET_ELEMENTS", "BASE_ROTATION", "FIELD_POINT"]
+
+_EDGE, _BODY, _MAG, _NB = 2e-3, 22e-3, 3e-3, 4
+MAGNET_ELEMENTS = (_NB, 2 * _NB + 1)  # element index of the proximal and the distal block
+RIGID_FACTOR, INERTIA_SCALE, ZETA, DT, DURATION = 20.0, 16.0, 0.25, 8e-5, 24.0
+BASE_ROTATION = ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))  # half turn about x: E3 -> -z
+FIELD_POINT = (0.0, 0.0, -0.036)
+_PRINTED_B, _PRINTED_DIRS = 5e-3, ((1, 0), (1, 1), (0, 1), (-1, 0), (-1, -1), (0, -1), (1, -1), (1, 0), None)
+
+
+@dataclass(frozen=True)
+class MagnetBlockRod(Rod):
+    """A :class:`~physics.rod.Rod` whose ``rigid_elements`` have ``rigid_factor`` times the bending and
+    torsion stiffness (C2): embedded magnet blocks."""
+
+    rigid_elements: tuple[int, ...] = ()
+    rigid_factor: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not (math.isfinite(self.rigid_factor) and self.rigid_factor >= 1.0):
+            raise ValueError(f"MagnetBlockRod.rigid_factor must be >= 1, got {self.rigid_factor!r}")
+        if not all(0 <= e < self.N for e in self.rigid_elements):
+            raise ValueError(f"MagnetBlockRod.rigid_elements must lie in [0, {self.N}), got {self.rigid_elements}")
+
+    def params(self, dtype: torch.dtype = torch.float64, device=None):
+        p = super().params(torch.float64)
+        C2 = p.C2.clone()
+        C2[list(self.rigid_elements)] *= self.rigid_factor
+        return p._replace(C2=C2).to(dtype=dtype, device=device)
+
+
+def _block(s: float, Br: float, name: str) -> Magnet:
+    vol = _EDGE * _EDGE * _MAG
+    mass = (NDFEB.density - PMC770.density) * vol
+    i_perp, i_ax = mass * (_EDGE**2 + _MAG**2) / 12, mass * 2 * _EDGE**2 / 12
+    return Magnet(s=s, mass=mass, moment=(0.0, 0.0, dipole_moment(Br, vol)),
+                  inertia=(INERTIA_SCALE * i_perp, INERTIA_SCALE * i_perp, INERTIA_SCALE * i_ax), name=name)
+
+
+def _rod(damping: float = 0.0, rot_damping: float = 0.0) -> MagnetBlockRod:
+    lens = (_BODY / _NB,) * _NB + (_MAG,) + (_BODY / _NB,) * _NB + (_MAG,)
+    mags = (_block(_BODY + _MAG / 2, BR_N42, "proximal N42"), _block(2 * _BODY + 1.5 * _MAG, BR_N45, "distal N45"))
+    return MagnetBlockRod(2 * (_BODY + _MAG), SquareSection(_EDGE), PMC770, element_lengths=lens, magnets=mags,
+                          rotational_inertia_scale=INERTIA_SCALE, damping=damping, rotational_damping=rot_damping,
+                          rigid_elements=MAGNET_ELEMENTS, rigid_factor=RIGID_FACTOR)
+
+
+# viscous damping per unit length (N s/m^2, N m s/m), chosen for the modal damping ratios of
+# :func:`modal_damping` (a test recomputes them): 25 % in the first bending mode, 48 % in the first
+# torsion mode, 8 % in the second bending mode
+DAMPING, ROT_DAMPING = 0.107, 1.28e-5
+
+
+def modal_damping(rod_: Rod, n_modes: int = 6) -> list[tuple[float, float]]:
+    """(frequency Hz, damping ratio) of the lowest clamped-free modes: ``phi^T C phi / (2 omega phi^T M phi)``
+    with the undamped mode shapes ``phi`` and the rod's viscous coefficients ``C``."""
+    import numpy as np
+    import scipy.linalg
+
+    from .modal import stiffness_and_mass
+    K, mass = stiffness_and_mass(rod_)
+    keep = np.arange(6, 6 * rod_.n_nodes)
+    K, M = K.toarray()[keep][:, keep], mass[keep]
+    w2, V = scipy.linalg.eigh(K, np.diag(M), subset_by_index=[0, n_modes - 1])
+    prm = rod_.params()
+    c = torch.cat((prm.damping, prm.rot_damping), -1).reshape(-1).numpy()[keep]
+    w = np.sqrt(w2)
+    z = (V * c[:, None] * V).sum(0) / (2 * w * (V * M[:, None] * V).sum(0))
+    return [(float(a / (2 * math.pi)), float(b)) for a, b in zip(w, z)]
+
+
+def rod() -> MagnetBlockRod:
+    """The scene's rod."""
+    return _rod(DAMPING, ROT_DAMPING)
+
+
+_EMNS = None
+
+
+def eMNS():
+    """The six-coil eMNS of the scene (built once)."""
+    global _EMNS
+    if _EMNS is None:
+        _EMNS = six_coil_emns()
+    return _EMNS
+
+
+def printed_currents() -> MinJerkCurrents:
+    """The printed profile (module docstring)."""
+    e = eMNS()
+    pt = torch.tensor([FIELD_POINT], dtype=torch.float64)
+    targets = []
+    for d in _PRINTED_DIRS:
+        if d is None:
+            targets.append(torch.zeros(1, 3, dtype=torch.float64))
+        else:
+            v = torch.tensor([d[0], d[1], 0.0], dtype=torch.float64)
+            targets.append(_PRINTED_B * v / v.norm())
+    field = torch.stack([t.reshape(1, 3) for t in targets])
+    I = e.allocate(pt.expand(len(targets), 1, 3), field=field).currents
+    setpoints = torch.cat([torch.zeros(1, e.n_coils, dtype=torch.float64), I])
+    n = setpoints.shape[0]
+    return MinJerkCurrents(setpoints, moves=(1.5,) * (n - 1), holds=(0.5,) + (1.0,) * (n - 2) + (2.0,))
+
+
+def heldout_currents(seed: int = 2024, peak: float = 4.0) -> SinusoidCurrents:
+    """Sums of three sinusoids per coil (0.06-0.25 Hz, random phases), scaled to ``peak`` A at most."""
+    g = torch.Generator().manual_seed(seed)
+    C = eMNS().n_coils
+    freqs = 0.06 + 0.19 * torch.rand(3, generator=g, dtype=torch.float64)
+    amp = torch.rand(3, C, generator=g, dtype=torch.float64) + 0.2
+    amp = amp * peak / amp.sum(0).max()
+    phases = 2 * math.pi * torch.rand(3, C, generator=g, dtype=torch.float64)
+    return SinusoidCurrents(amp, freqs, phases, ramp=2.0)
+
+
+_EQ: dict = {}
+
+
+def _hanging(rod_: Rod) -> dict:
+    """At rest, hanging straight down under gravity (static equilibrium, zero current)."""
+    if rod_ not in _EQ:
+        from .relax import static_equilibrium
+
+        p0 = torch.zeros(rod_.n_nodes, 3, dtype=torch.float64)
+        p0[:, 2] = -rod_.arclength
+        R0 = torch.tensor(BASE_ROTATION, dtype=torch.float64).expand(rod_.n_nodes, 3, 3).clone()
+        _EQ[rod_] = static_equilibrium(rod_, p0, R0, gravity=(0.0, 0.0, -G_EARTH))
+    p, R = _EQ[rod_]
+    return {"p": p.clone(), "R": R.clone()}
+
+
+def magnetic_rod_scene(name: str, currents, title: str, profile: str, duration: float = DURATION) -> Scene:
+    """The rod in the eMNS driven by ``currents(t) -> (C,)`` or ``(V, C)`` A."""
+    r = rod()
+    return Scene(
+        name=name, title=title,
+        description=(__doc__.split("\n\n")[1] + " " + __doc__.split("\n\n")[2]).replace("\n", " ") + " " + profile,
+        rod=r, bc="clamped-free", dt=DT, duration=duration, gravity=(0.0, 0.0, -G_EARTH),
+        loads=Loads(field=CoilField(eMNS(), currents)), initial=_hanging,
+        nodes_of_interest=(10, 5), node_labels=("tip (distal magnet, distal end)", "node 6 (proximal magnet, distal end)"),
+        thesis={"body": {"E": 2.5e6, "density": 1000.0, "nu": 0.5}, "magnets": ("N42 proximal", "N45 distal"),
+                "n_coils": 6, "experiment_duration_s": 340.0, "experiment_samples": 669, "bandwidth_hz": (8.33, 50.0),
+                "orientation_errors_deg": {  # Table II.1: (max, mean) about x, y, z
+                    "distal": {"rnn": ((1.27, 0.23), (4.69, 1.27), (0.60, 0.10)),
+                               "cosserat": ((3.56, 0.82), (10.55, 5.03), (4.02, 2.22))},
+                    "proximal": {"rnn": ((1.13, 0.31), (3.30, 0.89), (3.93, 0.31)),
+                                 "cosserat": ((1.55, 0.36), (7.22, 3.51), (3.29, 1.99))}}},
+        chosen={"elements": r.lengths, "magnet_elements": MAGNET_ELEMENTS, "rigid_factor": RIGID_FACTOR,
+                "rotational_inertia_scale": INERTIA_SCALE, "damping_ratio_mode1": ZETA, "damping_ratio_torsion": 0.48,
+                "damping": r.damping,
+                "rotational_damping": r.rotational_damping, "first_bending_hz": 4.148,
+                "magnet_masses": tuple(m.mass for m in r.magnets), "moments": tuple(m.moment[2] for m in r.magnets),
+                "base": "clamped at the origin hanging down (body E3 = -z)", "field_point": FIELD_POINT,
+                "currents": profile, "field_cache_tol_m": 2e-4})
+
+
+def magnetic_rod() -> Scene:
+    return magnetic_rod_scene(
+        "magnetic_rod", printed_currents(),
+        "Paper II magnetic rod: two-magnet PMC rod swung by a six-coil eMNS (set-point moves)",
+        "Printed currents: minimum-jerk set-point moves to 5 mT fields along +x, +x+y, +y, -x, -x-y, -y, "
+        "+x-y, +x and back to zero (1.5 s moves, 1 s holds).")
+
+
+def magnetic_rod_heldout() -> Scene:
+    return magnetic_rod_scene(
+        "magnetic_rod_heldout", heldout_currents(),
+        "Paper II magnetic rod, held-out: currents as sums of slow sinusoids (never trained on)",
+        "Held-out currents: per coil a sum of three sinusoids (0.06-0.25 Hz, seed 2024) faded in over 2 s, "
+        "at most 4 A.")
+
+
+BUILDERS = (magnetic_rod, magnetic_rod_heldout)

@@ -1,0 +1,181 @@
+"""The magnetic-rod surrogate task (Paper II Data-set IV, Table II.1): scene, data, orientation errors,
+the static Cosserat baseline and the shipped checkpoint."""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from cmlearn.data import generate_dataset, get_task, load_dataset
+from cmlearn.data.magnetic import magnet_frames, magnet_wrench, rollout, wrench_inputs
+from cmlearn.surrogate.magnetic import cosserat_orientations, orientation_errors, orientation_stats
+from physics.coil_currents import BatchedCurrents, CoilField, MinJerkCurrents, SinusoidCurrents
+from physics.lie import rot_x, rot_y, rot_z
+from physics.scenes import get_scene
+from physics.scenes_magnetic_rod import FIELD_POINT, MagnetBlockRod, eMNS
+
+ROOT = Path(__file__).resolve().parents[1]
+TASK = get_task("magnetic_rod")
+B_STEP = 5e-3  # T at the rod's middle
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def step_response():
+    """The rod after 1.5 s in the currents of a 5 mT field along +x (batch 0) and +y (batch 1), reached by a
+    0.5 s minimum-jerk ramp: quasi-static at the end (first mode 4.1 Hz, 17 % of critical)."""
+    e = eMNS()
+    field = torch.tensor([[[B_STEP, 0.0, 0.0]], [[0.0, B_STEP, 0.0]]], dtype=torch.float64)
+    I = e.allocate(torch.tensor([FIELD_POINT], dtype=torch.float64).expand(2, 1, 3), field=field).currents
+    profiles = [MinJerkCurrents(torch.stack([torch.zeros(6, dtype=torch.float64), i]), (0.5,), (0.0, 1.0)) for i in I]
+    scene = replace(get_scene("magnetic_rod"), duration=1.5)
+    pts, W, _ = rollout(TASK, scene, currents=BatchedCurrents(profiles))
+    return scene, I, pts, W
+
+
+def test_a_field_turns_the_magnets_towards_it(step_response):
+    scene, I, pts, _ = step_response
+    c, R, _ = magnet_frames(TASK, scene.rod, pts[:, -1])
+    e3 = R[..., 2]  # moment directions (both magnets along body E3, hanging down at rest)
+    B = eMNS().field(c, I)  # the field each magnet sits in at the end
+    b = B / B.norm(dim=-1, keepdim=True)
+    rest = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    assert float(((e3 - rest) * b).sum(-1).min()) > 0.3  # both magnets turned a lot towards their field
+    for k, axis in ((0, 0), (1, 1)):  # the distal magnet swings towards +x, +y by tens of degrees
+        dist, prox = e3[k, 1], e3[k, 0]
+        assert float(dist[axis]) > 0.5 and float(prox[axis]) > 0.3 and float(dist[axis]) > float(prox[axis])
+    assert abs(float(e3[0, 1, 1])) < 0.01  # +x field: the coils are symmetric about the xz-plane
+    assert float((pts[:, -1] - pts[:, -2]).abs().max()) < 2e-5  # settled: quasi-static at the end
+
+
+def test_magnet_frames_from_points_match_the_lgvi_rotation():
+    from physics.elastic import relative_cayley
+    from physics.loads import magnet_poses
+    from cmlearn.data.magnetic import tracked_points
+    scene = get_scene("magnetic_rod")
+    cfg = scene.initial_configuration()
+    I = torch.tensor([2.0, -1.0, 0.5, -2.0, 1.0, 1.5], dtype=torch.float64)
+    sim = scene.make_integrator(loads=replace(scene.loads, field=CoilField(eMNS(), lambda t: I)))
+    s, _ = sim.simulate(sim.initial_state(p=cfg["p"], R=cfg["R"]), n_steps=2000)
+    prm = scene.rod.params()
+    _, Rm, _ = magnet_poses(s.p, s.R, relative_cayley(s.R), prm)
+    _, R_hat, _ = magnet_frames(TASK, scene.rod, tracked_points(TASK, scene.rod, s.p, s.R))
+    assert float(orientation_errors(Rm, torch.eye(3, dtype=torch.float64)).norm(dim=-1).min()) > 5.0  # it moved
+    assert float(orientation_errors(R_hat, Rm).abs().max()) < 1e-6
+
+
+def test_wrench_inputs_carry_the_magnets_torque_and_force(step_response):
+    scene, I, pts, W = step_response
+    rod = scene.rod
+    c, R, d = magnet_frames(TASK, rod, pts[0, -1])
+    moments = torch.tensor([m.moment for m in rod.magnets], dtype=torch.float64)
+    f, tau = magnet_wrench(eMNS(), c, R, moments, I[0])
+    w = wrench_inputs(TASK, rod, eMNS(), pts[0, -1], I[0])  # nodes 4, 5, 9, 10
+    for k, (a, b) in enumerate(((0, 1), (2, 3))):
+        assert torch.allclose(w[a] + w[b], f[k], atol=1e-12)
+        assert torch.allclose(0.5 * torch.linalg.cross(d[k], w[b] - w[a], dim=-1), tau[k], rtol=1e-6, atol=1e-12)
+    assert float(tau.norm(dim=-1).min()) > 1e-5  # a real torque (N m), not a vacuous identity
+    # the stored inputs of the last step are the same function of the frame and the mid-step currents
+    assert torch.allclose(W[0, -1], wrench_inputs(TASK, rod, eMNS(), pts[0, -2], I[0]), rtol=1e-9, atol=1e-12)
+
+
+def test_static_cosserat_agrees_with_the_lgvi_at_a_quasi_static_sample(step_response):
+    scene, I, pts, _ = step_response
+    _, R_lgvi, _ = magnet_frames(TASK, scene.rod, pts[:, -1])
+    profiles = BatchedCurrents([lambda t, i=i: i for i in I])
+    for b in range(2):
+        R_cos, _ = cosserat_orientations(lambda t, b=b: profiles(t)[b], [1.5], eMNS())
+        err = orientation_errors(R_cos[0], R_lgvi[b]).norm(dim=-1)
+        swing = orientation_errors(R_lgvi[b], torch.tensor([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]],
+                                                             dtype=torch.float64)).norm(dim=-1)
+        assert float(swing.min()) > 20.0 and float(err.max()) < 2.0, (swing, err)  # a wrong sign: > 40 deg
+
+
+def test_orientation_error_by_hand():
+    ref = rot_x(math.pi / 2, dtype=torch.float64)
+    pred = rot_y(math.radians(2.0), dtype=torch.float64) @ ref  # 2 deg about the world y axis
+    assert torch.allclose(orientation_errors(pred, ref), torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64), atol=1e-9)
+    # 5 deg about the axis (0.6, 0, -0.8), by Rodrigues' formula: the angles about x, y, z are 3, 0, -4 deg
+    n, th = torch.tensor([0.6, 0.0, -0.8], dtype=torch.float64), math.radians(5.0)
+    K = torch.tensor([[0.0, -n[2], n[1]], [n[2], 0.0, -n[0]], [-n[1], n[0], 0.0]], dtype=torch.float64)
+    turn = torch.eye(3, dtype=torch.float64) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+    ref2 = rot_z(0.7, dtype=torch.float64)
+    e = orientation_errors(turn @ ref2, ref2)
+    assert torch.allclose(e, torch.tensor([3.0, 0.0, -4.0], dtype=torch.float64), atol=1e-9)
+    assert not torch.allclose(orientation_errors(ref2 @ turn, ref2), e, atol=0.1)  # world, not body, axes
+    err = torch.tensor([[[1.0, -2.0, 0.5], [0.0, 0.0, 0.0]], [[-3.0, 1.0, 0.5], [0.0, 4.0, 0.0]]])
+    s = orientation_stats(err)
+    assert s["proximal"]["x"] == {"max_deg": 3.0, "mean_deg": 2.0} and s["distal"]["y"]["max_deg"] == 4.0
+    with pytest.raises(ValueError, match="R_pred"):
+        orientation_errors(torch.eye(3), torch.eye(2))
+
+
+def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
+    path = tmp_path / "mag.pt"
+    meta = generate_dataset("magnetic_rod", 2, seed=39, out=path, duration=0.2)  # seed 39: moves at 0.1 s
+    d = load_dataset(path, task="magnetic_rod")
+    assert d["positions"].shape == (2, 11, 11, 3) and d["wrench"].shape == (2, 10, 4, 3)
+    assert meta["tracked"] == [0, 2, 4, 5, 7, 9, 10, 11, 12, 13, 14] and meta["wrench_nodes"] == [4, 5, 9, 10]
+    assert torch.equal(d["wrench"][0], torch.zeros(10, 4, 3))  # the printed profile holds zero current for 0.5 s
+    assert float(d["wrench"][1].abs().max()) > 0
+    centre = 0.5 * (d["positions"][:, :, 2] + d["positions"][:, :, 3])
+    lateral, axial = d["positions"][:, :, 7] - centre, d["positions"][:, :, 8] - centre
+    assert torch.allclose(lateral.norm(dim=-1), torch.full((2, 11), 0.02), atol=1e-6)  # 20 mm lever arms
+    assert torch.allclose(axial[:, 0], torch.tensor([0.0, 0.0, -0.02]).expand(2, 3), atol=1e-6)  # along E3 = -z
+    assert float((lateral * axial).sum(-1).abs().max()) < 1e-9
+
+
+def test_profiles_and_rod_validate_their_input():
+    with pytest.raises(ValueError, match="moves"):
+        MinJerkCurrents(torch.zeros(2, 6), (0.0,), (0.1, 0.1))
+    with pytest.raises(ValueError, match="holds"):
+        MinJerkCurrents(torch.zeros(2, 6), (1.0,), (0.1,))
+    with pytest.raises(ValueError, match="frequencies"):
+        SinusoidCurrents(torch.ones(2, 6), (0.1, -0.1), torch.zeros(2, 6))
+    with pytest.raises(ValueError, match="tol"):
+        CoilField(eMNS(), lambda t: torch.zeros(6), tol=0.0)
+    with pytest.raises(ValueError, match="rigid_factor"):
+        replace(get_scene("magnetic_rod").rod, rigid_factor=0.5)
+    p = MinJerkCurrents(torch.tensor([[0.0] * 6, [1.0] * 6]), (2.0,), (1.0, 1.0))
+    assert float(p(1.0)[0]) == 0.0 and float(p(2.0)[0]) == pytest.approx(0.5) and float(p(9.0)[0]) == 1.0
+
+
+def test_damping_ratios_and_time_step():
+    from physics.scenes_magnetic_rod import modal_damping
+    scene = get_scene("magnetic_rod")
+    rod = scene.rod
+    assert isinstance(rod, MagnetBlockRod)
+    (f1, z1), _, (ft, zt), (f2, z2) = modal_damping(rod, 4)
+    assert f1 == pytest.approx(4.15, abs=0.01) and z1 == pytest.approx(0.25, abs=0.005)
+    assert zt == pytest.approx(0.48, abs=0.01) and z2 == pytest.approx(0.078, abs=0.005)
+    assert scene.chosen["damping_ratio_mode1"] == 0.25 and rod.stable_time_step().dt_max > scene.dt
+
+
+def test_shipped_checkpoint_reproduces_its_check_and_compare_prints_degrees(tmp_path, capsys):
+    from cmlearn.compare import run_compare
+    from cmlearn.surrogate import Surrogate
+    from cmlearn.surrogate.evaluate import short_check
+    path = ROOT / "checkpoints" / "magnetic_rod.pt"
+    engine = Surrogate.load(path, task="magnetic_rod")
+    chk = engine.meta["check"]
+    got = short_check(engine, chk["scene"], chk["duration"])
+    assert got["max_err_mm"] == pytest.approx(chk["max_err_mm"], rel=1e-3, abs=1e-3)
+    assert got["max_orientation_err_deg"] == pytest.approx(chk["max_orientation_err_deg"], rel=1e-3, abs=1e-3)
+    m = engine.meta["metrics"]
+    assert set(m) == {"seen_last40", "magnetic_rod_heldout"}
+    for case in m.values():
+        assert set(case["orientation_deg"]) == {"one_step", "free_running", "cosserat"}
+    summary = run_compare("magnetic_rod_heldout", duration=0.1, out=tmp_path)
+    out = capsys.readouterr().out
+    assert "distal magnet orientation: about x max" in out and "deg" in out and "static Cosserat" in out
+    assert set(summary["orientation_deg"]) == {"surrogate", "cosserat"}
