@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader never sees a half-written dataset, checkpoint, table or figure."""
+"""Atomic file writes (a reader never sees a half-written dataset, checkpoint, table or figure) and the
+error every checkpoint loader raises."""
 from __future__ import annotations
 
 import os
@@ -6,7 +7,12 @@ import tempfile
 from pathlib import Path
 from typing import BinaryIO, Callable
 
-__all__ = ["atomic_write", "write_text_atomic"]
+__all__ = ["atomic_write", "write_text_atomic", "CheckpointError"]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used: unreadable or truncated, of another format or architecture, or for
+    another task."""
 
 
 def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:

@@ -18,9 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmlearn.io import atomic_write, write_text_atomic
+from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, IQNNetwork
-from cmlearn.surrogate.checkpoint import CheckpointError
 
 __all__ = ["AGENT_FORMAT", "IQNAgent", "save_agent", "load_agent", "CheckpointError"]
 

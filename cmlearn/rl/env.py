@@ -229,7 +229,7 @@ class MagneticParticleEnv(gym.Env):
             action = action.item()
         if isinstance(action, bool) or not isinstance(action, (int, np.integer)) or not 0 <= int(action) < 4:
             raise ValueError(f"action must be an int in [0, 4) (+x, -x, +y, -y), got {action!r}")
-        cfg, m = self.config, self.map
+        cfg = self.config
         dx, dy = ACTIONS[int(action)]
         self.controller = 2
         self.reason = self._move((self.ee[0] + dx * cfg.action_step, self.ee[1] + dy * cfg.action_step), 2)

@@ -15,17 +15,13 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.io import atomic_write, write_text_atomic
+from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
 __all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint"]
 
 FORMAT = "cmlearn-surrogate/1"
 _CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used: unreadable, of another format/class, or for another task."""
 
 
 def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> Path:
