@@ -35,6 +35,8 @@ def test_train_agent_then_eval_controllers_quick(tmp_path):
     meta = json.loads((tmp_path / "agent.json").read_text())
     assert "--quick" in meta["command"] and meta["frames"] == 1024 and meta["wall_s"] > 0
     assert (tmp_path / "run" / "train_state.pt").exists() and (tmp_path / "run" / "log").is_dir()
+    rep = run_script([str(ROOT / "scripts/report_agent.py"), "--agent", "agent.json", "--out", "rep"], tmp_path)
+    assert rep["points"] == 2 and (tmp_path / "rep.png").exists() and (tmp_path / "rep.md").exists()
     res = run_script([str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1", "--train-maps", "1",
                       "--unseen-maps", "1", "--out", "ev", "--report", "ev/report.md", "--agent", "agent.pt"], tmp_path)
     table = res["results"]

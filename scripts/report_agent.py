@@ -1,0 +1,56 @@
+"""Training curve of the shipped Rainbow-IQN agent, from the evaluations stored in its metadata.
+
+Reads ``<agent>.json`` (written by ``scripts/train_agent.py``: periodic greedy evaluations with
+frames, updates and wall time) and writes a PNG (success rate and return against frames and wall
+time) and a markdown table.
+
+    python scripts/report_agent.py [--agent checkpoints/iqn_agent.json] [--out docs/agent_training]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def main(argv=None):
+    root = Path(__file__).resolve().parents[1]
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--agent", default=str(root / "checkpoints" / "iqn_agent.json"))
+    ap.add_argument("--out", default=str(root / "docs" / "agent_training"))
+    a = ap.parse_args(argv)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cmlearn.io import atomic_write, write_text_atomic
+    meta = json.loads(Path(a.agent).read_text())
+    ev = meta.get("evaluations") or []
+    if not ev:
+        raise SystemExit(f"{a.agent}: no evaluations recorded")
+    cfg = meta.get("train_config", {})
+    frames = [e["frames"] for e in ev]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax.plot(frames, [100 * e["success_rate"] for e in ev], "o-")
+    ax.set(xlabel="environment frames", ylabel="greedy success (%)",
+           title=f"{cfg.get('eval_episodes', '?')} episodes per point, training maps")
+    bx.plot([e["wall_s"] / 60 for e in ev], [e["return"] for e in ev], "o-", color="tab:orange")
+    bx.set(xlabel="wall time (min)", ylabel="mean return")
+    fig.tight_layout()
+    out = Path(a.out)
+    atomic_write(out.with_suffix(".png"), lambda f: fig.savefig(f, format="png", dpi=110))
+    lines = [f"Training of `{Path(a.agent).with_suffix('.pt').name}`: `{meta.get('command', '')}`; "
+             f"{meta.get('frames')} frames, {meta.get('updates')} updates, {meta.get('wall_s')} s wall "
+             f"({meta.get('threads')} thread(s), {meta.get('workers')} collector process(es) x "
+             f"{meta.get('num_envs')} envs).", "",
+             "| frames | updates | wall (min) | success | mean decisions | mean return |", "|---|---|---|---|---|---|"]
+    lines += [f"| {e['frames']} | {e['updates']} | {e['wall_s'] / 60:.1f} | {100 * e['success_rate']:.0f} % | "
+              f"{e['mean_steps']:.1f} | {e['return']:.3f} |" for e in ev]
+    md = "\n".join(lines) + "\n"
+    write_text_atomic(out.with_suffix(".md"), md)
+    print(md)
+    print(json.dumps({"points": len(ev), "final_success": ev[-1]["success_rate"], "png": str(out.with_suffix(".png"))}))
+
+
+if __name__ == "__main__":
+    main()
