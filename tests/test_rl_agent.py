@@ -246,3 +246,18 @@ def test_n_step_windows_that_end_in_a_terminal_state_do_not_bootstrap():
     assert not torch.allclose(y[:3], d["next", "reward"][:3].expand(3, 4))     # the others bootstrap
     # a window cut by truncation (step 9) bootstraps from the observation after the truncated step
     assert torch.equal(d["next", "observation"][8], obs[0, 10]) and not d["next", "terminated"][8]
+
+
+def test_shipped_agent_checkpoint_loads_acts_deterministically_and_records_its_training():
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "checkpoints" / "iqn_agent.pt"
+    a, b = IQNAgent.load(path), IQNAgent.load(path)
+    meta = a.meta
+    assert meta["command"].startswith("python scripts/train_agent.py") and meta["frames"] >= 100_000
+    assert meta["wall_s"] > 0 and meta["evaluations"] and path.stat().st_size < 5e6
+    import cmlearn.rl as rl
+    env = MagneticParticleEnv(map_seeds=rl.map_seeds("train", 1))
+    obs, info = env.reset(seed=0)
+    assert np.array_equal(a.q_values(obs), b.q_values(obs)) and a.act(obs, info) == b.act(obs, info)
+    r1, r2 = run_episode(env, a, seed=3), run_episode(env, b, seed=3)
+    assert r1.reason == r2.reason and r1.steps == r2.steps and np.array_equal(r1.trajectory, r2.trajectory)
