@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from cmlearn.io import write_text_atomic
+from cmlearn.surrogate import surrogate_checkpoints
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,7 +88,7 @@ def main(argv=None):
     ap.add_argument("--out", default="docs/surrogates.md")
     ap.add_argument("--checkpoints", default=str(ROOT / "checkpoints"))
     a = ap.parse_args(argv)
-    cks = sorted(Path(a.checkpoints).glob("*.pt"))
+    cks = surrogate_checkpoints(a.checkpoints)
     table = rows(cks)
     lines = ["# Shipped LSTM node surrogates against the LGVI (Paper II)", "",
              "Max, mean absolute error (mm) per axis x / y / z of the scene's node of interest (node 30 of 59, the",

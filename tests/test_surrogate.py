@@ -12,11 +12,11 @@ import torch
 from cmlearn.data import generate_dataset, get_task, load_dataset
 from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
-from cmlearn.surrogate import CheckpointError, Surrogate, load_checkpoint, save_checkpoint
+from cmlearn.surrogate import CheckpointError, Surrogate, load_checkpoint, save_checkpoint, surrogate_checkpoints
 from cmlearn.surrogate.evaluate import free_running, one_step, short_check
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = sorted((ROOT / "checkpoints").glob("*.pt"))
+SHIPPED = surrogate_checkpoints(ROOT / "checkpoints")
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """Shipped surrogates: checkpoints and the real-time rollout engine (training lives in
 :mod:`cmlearn.surrogate.training`, which needs Lightning)."""
-from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint, surrogate_checkpoints
 from .engine import Surrogate
 
-__all__ = ["CheckpointError", "Surrogate", "load_checkpoint", "save_checkpoint"]
+__all__ = ["CheckpointError", "Surrogate", "load_checkpoint", "save_checkpoint", "surrogate_checkpoints"]

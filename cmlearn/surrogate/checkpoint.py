@@ -18,7 +18,7 @@ import torch
 from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
-__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint"]
+__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "surrogate_checkpoints"]
 
 FORMAT = "cmlearn-surrogate/1"
 _CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
@@ -62,3 +62,14 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     except (TypeError, ValueError, RuntimeError, KeyError) as e:
         raise CheckpointError(f"{path}: weights do not match the stored configuration ({str(e)[:200]})") from None
     return model.eval(), meta
+
+
+def surrogate_checkpoints(folder: str | Path) -> list[Path]:
+    """The surrogate checkpoints in ``folder`` (those whose JSON metadata names a task; the folder also
+    holds the agent's)."""
+    out = []
+    for p in sorted(Path(folder).glob("*.pt")):
+        meta = p.with_suffix(".json")
+        if meta.is_file() and "task" in json.loads(meta.read_text()):
+            out.append(p)
+    return out
