@@ -40,13 +40,27 @@ def find_checkpoint(task_name: str, explicit: str | Path | None = None) -> Path:
                             "pass --checkpoint PATH")
 
 
+def node_errors(task, scene, p_sur, p_ref) -> tuple[dict, list, list]:
+    """Per node of interest: per-axis max/mean absolute errors and the RMSE(t) summary (mm); with the
+    nodes' slots in the surrogate's output and their labels."""
+    from .eval.metrics import axis_errors, rmse_t
+    from .surrogate.evaluate import interest_slots
+    labels = [lab for n, lab in zip(scene.nodes_of_interest, scene.node_labels) if n in task.tracked]
+    slots = interest_slots(task, scene)
+    nodes = {}
+    for slot, label in zip(slots, labels):
+        r = rmse_t(p_sur[:, slot], p_ref[:, slot])
+        nodes[label] = {"errors": axis_errors(p_sur[:, slot], p_ref[:, slot], scene.rod.length),
+                        "rmse_mm": {"mean": float(r.mean()) * 1e3, "max": float(r.max()) * 1e3,
+                                    "final": float(r[-1]) * 1e3}}
+    return nodes, slots, labels
+
+
 def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duration: float | None = None) -> dict:
     import torch
 
     from .data.generate import scene_rollout
-    from .eval.metrics import axis_errors, rmse_t
     from .surrogate import Surrogate
-    from .surrogate.evaluate import interest_slots
 
     task = task_for_scene(scene_name)
     if task.custom:  # e.g. the magnetic rod (adds magnet orientation errors in degrees)
@@ -58,16 +72,9 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
     engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
     p_ref, _, wall_ref = scene_rollout(task, scene)
     p_sur, wall_sur = engine.run_scene(scene)
-    slots = interest_slots(task, scene)
     L = scene.rod.length
-    labels = [lab for n, lab in zip(scene.nodes_of_interest, scene.node_labels) if n in task.tracked]
     t = torch.arange(p_ref.shape[0]) * task.delta
-    nodes = {}
-    for slot, label in zip(slots, labels):
-        r = rmse_t(p_sur[:, slot], p_ref[:, slot])
-        nodes[label] = {"errors": axis_errors(p_sur[:, slot], p_ref[:, slot], L),
-                        "rmse_mm": {"mean": float(r.mean()) * 1e3, "max": float(r.max()) * 1e3,
-                                    "final": float(r[-1]) * 1e3}}
+    nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
             "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur,
             "speedup": wall_ref / wall_sur, "nodes": nodes, "checkpoint_metrics": engine.meta.get("metrics", {}),

@@ -232,7 +232,7 @@ def short_check(engine, scene_name: str, duration: float) -> dict:
 def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None) -> dict:
     """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there, plus the magnets'
     orientation errors (deg) of the surrogate (closed loop) and of the static Cosserat model."""
-    from cmlearn.compare import find_checkpoint
+    from cmlearn.compare import find_checkpoint, node_errors
 
     from .engine import Surrogate
     scene = task.scene_by_name(scene_name)
@@ -243,15 +243,8 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     p_sur, wall_sur = engine.run_scene(scene)
     p_ref = p_ref.float()
     rod, L = scene.rod, scene.rod.length
-    slots = interest_slots(task, scene)
-    labels = [lab for n, lab in zip(scene.nodes_of_interest, scene.node_labels) if n in task.tracked]
     t = torch.arange(p_ref.shape[0]) * task.delta
-    nodes = {}
-    for slot, label in zip(slots, labels):
-        r = rmse_t(p_sur[:, slot], p_ref[:, slot])
-        nodes[label] = {"errors": axis_errors(p_sur[:, slot], p_ref[:, slot], L),
-                        "rmse_mm": {"mean": float(r.mean()) * 1e3, "max": float(r.max()) * 1e3,
-                                    "final": float(r[-1]) * 1e3}}
+    nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
     R_ref = magnet_frames(task, rod, p_ref[1:].double())[1]
     orient = {"surrogate": orientation_stats(orientation_errors(magnet_frames(task, rod, p_sur[1:].double())[1], R_ref))}
     R_cos, wall_cos = cosserat_orientations(scene.loads.field.currents, t[1:].tolist(), scene.loads.field.emns)
