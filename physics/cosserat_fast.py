@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from .cosserat_lanes import rk4_tangent_step
+from .cosserat_lanes import end_of_step, rk4_tangent_step
 from .cosserat_ode import _field_wrench
 
 __all__ = ["NZ", "step_program", "flatten_field", "compile_program"]
@@ -145,15 +145,7 @@ def step_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float,
         y = [a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
         T = [[a if b is None else a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(*z)]
              for z in zip(T, d1, d2, d3, d4)]
-        qn = torch.sqrt(y[3] * y[3] + y[4] * y[4] + y[5] * y[5] + y[6] * y[6])
-        qh = [c / qn for c in y[3:7]]
-        for tj in T:
-            dot = sum(a * b for a, b in zip(qh, tj[3:7]))
-            tj[3:7] = [(dc - c * dot) / qn for c, dc in zip(qh, tj[3:7])]
-        y[3:7] = qh
-        for i in range(3):
-            y[7 + i] = y[7 + i] - F[i]
-            y[10 + i] = y[10 + i] - M[i]
+        end_of_step(y, T, F, M)
         if magnets:
             dy, dT = _magnet_jumps(y, T, fl, rest, batch, field_rebuild, t, fd_step)
             y[7:13] = [a + b for a, b in zip(y[7:13], dy)]

@@ -112,15 +112,22 @@ def rk4_tangent_step(y, tg, h, ks, kb, vh, uh, f, tau, F, M):
     k4, d4 = _rhs(ax(y, h, k3), ax(tg, h, d3), ks, kb, vh, uh, f, tau)
     y = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
     tg = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(tg, d1, d2, d3, d4)]
+    end_of_step(y, [tg], F, M)
+    return y, tg
+
+
+def end_of_step(y: list, tangents: list, F, M) -> None:
+    """In place: renormalise the quaternion components of ``y`` (projecting each tangent list in
+    ``tangents`` accordingly) and subtract the point force ``F`` / moment ``M`` from n and m."""
     qn = torch.sqrt(y[3] * y[3] + y[4] * y[4] + y[5] * y[5] + y[6] * y[6])
     qh = [c / qn for c in y[3:7]]
-    dot = sum(a * b for a, b in zip(qh, tg[3:7]))
-    tg[3:7] = [(dc - c * dot) / qn for c, dc in zip(qh, tg[3:7])]
+    for tj in tangents:
+        dot = sum(a * b for a, b in zip(qh, tj[3:7]))
+        tj[3:7] = [(dc - c * dot) / qn for c, dc in zip(qh, tj[3:7])]
     y[3:7] = qh
     for i in range(3):
         y[7 + i] = y[7 + i] - F[i]
         y[10 + i] = y[10 + i] - M[i]
-    return y, tg
 
 def _static(grid: CosseratGrid, dtype, device):
     """Grid-only parts, cached: point-load gather matrix (S+1, P), magnet flags (S+1, K), and whether
