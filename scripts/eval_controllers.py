@@ -1,7 +1,7 @@
 """Evaluate Sub-controller 2 candidates inside the switching controller (thesis Section 4.1.3).
 
 For each controller (``iqn``: the trained Rainbow-IQN agent of ``--agent``, ``attractor``, ``errt``,
-``random``) and each setting (undisturbed /
+``random``, ``teacher``: the privileged map-reading teacher of :mod:`cmlearn.rl.teacher`) and each setting (undisturbed /
 disturbed x training maps / unseen maps) it runs ``--episodes`` seeded episodes with random
 start and goal (the same seeds for every controller) and reports: success rate with its 95 %
 Wilson interval, mean decisions (Sub-controller 2 steps) and Sub-controller 1 steps, particle path
@@ -85,7 +85,10 @@ def make_controller(name: str, env, seed: int, agent: str = ""):
         return ERRTController(mpp, seed=seed)
     if name == "random":
         return RandomPolicy(seed)
-    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, attractor, errt, random)")
+    if name == "teacher":  # privileged (reads the map): a reference, not a robot controller
+        from cmlearn.rl.teacher import GeodesicTeacher
+        return GeodesicTeacher(env)
+    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, attractor, errt, random, teacher)")
 
 
 def plot_episode(res, map_, path: Path, title: str):

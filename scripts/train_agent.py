@@ -7,8 +7,11 @@ Every field of :class:`cmlearn.rl.training.AgentTrainConfig` is a flag (``--tota
 counters, random state; the replay buffer too with ``--save-buffer``), ``agent.pt`` + ``agent.json``
 (the network and metadata, the format shipped in ``checkpoints/``), CSV and TensorBoard logs and
 ``summary.json``. ``--resume`` continues from ``train_state.pt`` and says whether the replay buffer
-was restored. ``--ship PATH`` copies the final agent to PATH (e.g. ``checkpoints/iqn_agent.pt``).
-``--quick`` is a smoke-test budget (a few thousand frames).
+was restored. ``--ship PATH`` copies the final agent to PATH (e.g. ``checkpoints/iqn_agent.pt``), or with
+``--ship-best`` the one of the best periodic evaluation (``best_agent.pt``).
+``--demo-episodes N`` adds demonstrations of the privileged teacher (DQfD: a large-margin loss on
+them, ``--demo-batch`` of them in every update, ``--pretrain-updates`` on them alone before
+collection starts). ``--quick`` is a smoke-test budget (a few thousand frames).
 
     python scripts/train_agent.py --total-frames 400000 --out runs/iqn --ship checkpoints/iqn_agent.pt
 """
@@ -37,12 +40,15 @@ def parse(argv=None):
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--quick", action="store_true", help="smoke-test budget")
     ap.add_argument("--ship", default="", help="copy the final agent checkpoint here")
+    ap.add_argument("--ship-best", action="store_true",
+                    help="with --ship: copy the agent of the best periodic evaluation instead of the final one")
     ns = ap.parse_args(argv)
     if ns.no_progress:
         ns.progress = False
     if ns.quick:
         ns.total_frames, ns.init_random_frames, ns.eval_every, ns.eval_episodes = 1_024, 512, 512, 2
         ns.checkpoint_every, ns.buffer_size, ns.train_maps, ns.max_steps = 512, 4_096, 1, 30
+        ns.demo_episodes, ns.pretrain_updates = min(ns.demo_episodes, 4), min(ns.pretrain_updates, 20)
     return ns
 
 
@@ -53,7 +59,11 @@ def main(argv=None):
                                                                                     else argv))
     res = train_agent(cfg, command=command)
     if ns.ship:
-        net, meta = load_agent(res.agent_path)
+        best = ns.ship_best and res.best_agent_path
+        net, meta = load_agent(res.best_agent_path if best else res.agent_path)
+        if best:  # the shipped agent's own frames and wall time, and the whole run's
+            meta["run"] = {"frames": res.frames, "updates": res.updates, "wall_s": round(res.wall_s, 1),
+                           "evaluations": res.evaluations}
         save_agent(ns.ship, net, meta)
         print(f"shipped {ns.ship}")
     print(json.dumps({"frames": res.frames, "updates": res.updates, "wall_s": round(res.wall_s, 1),

@@ -261,3 +261,104 @@ def test_shipped_agent_checkpoint_loads_acts_deterministically_and_records_its_t
     assert np.array_equal(a.q_values(obs), b.q_values(obs)) and a.act(obs, info) == b.act(obs, info)
     r1, r2 = run_episode(env, a, seed=3), run_episode(env, b, seed=3)
     assert r1.reason == r2.reason and r1.steps == r2.steps and np.array_equal(r1.trajectory, r2.trajectory)
+
+
+# ---------------------------------------------------------------- learning from demonstrations (DQfD)
+
+def test_margin_loss_equals_hand_computation_and_is_added_on_expert_samples_only():
+    actor = make_iqn_actor(IQNConfig(**SMALL))
+    loss = IQNLoss(actor, num_quantiles=8, num_target_quantiles=8, margin=0.8, margin_weight=0.5)
+    q = torch.tensor([[1.0, 2.0, 0.5, 0.0], [1.0, 2.0, 0.5, 0.0]])
+    # expert action 0: max(1 + 0, 2 + .8, .5 + .8, 0 + .8) - 1 = 1.8; expert action 1: max(1.8, 2, 1.3, .8) - 2 = 0
+    torch.testing.assert_close(loss.margin_loss(q, torch.tensor([0, 1])), torch.tensor([1.8, 0.0]))
+    td = batch(B=4)
+    torch.manual_seed(3)
+    plain = loss(td.clone())["loss"]
+    td["expert"] = torch.tensor([True, False, True, False])
+    torch.manual_seed(3)
+    out = loss(td)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM), \
+            loss.value_network_params.to_module(loss.value_network):
+        torch.manual_seed(3)
+        _ = loss.target_quantiles(td)                      # same random stream as inside forward
+        z = find_iqn_network(actor).quantiles(td["observation"], torch.rand(4, 8))
+    m = loss.margin_loss(z.mean(-2), td["action"].argmax(-1))
+    expected = plain + 0.5 * (m[0] + m[2]) / 4
+    torch.testing.assert_close(out["loss"], expected, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out["margin_loss"], (m[0] + m[2]) / 2, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="margin"):
+        IQNLoss(actor, margin=-1.0)
+
+
+def test_demonstration_windows_match_the_replay_buffers_n_step_transform():
+    from cmlearn.rl.demos import episode_transitions
+    from cmlearn.rl.training import make_replay_buffer
+    T, n, gamma = 9, 3, 0.9
+    g = torch.Generator().manual_seed(1)
+    obs = torch.randint(0, 256, (T + 1, 2, 84, 84), dtype=torch.uint8, generator=g)
+    actions, rewards = torch.randint(0, 4, (T,), generator=g), torch.randn(T, generator=g)
+    for terminated in (True, False):
+        demo = episode_transitions(obs.numpy(), actions.numpy(), rewards.numpy(), terminated, n, gamma)
+        # the last windows by hand: reward r7 + .9 r8 (2 steps) and r8 (1 step), ending at the last observation
+        torch.testing.assert_close(demo["next", "reward"][T - 2, 0], rewards[7] + 0.9 * rewards[8])
+        assert demo["gamma"][T - 1].item() == pytest.approx(0.9) and torch.equal(demo["next", "observation"][T - 1],
+                                                                                 obs[T])
+        assert demo["next", "terminated"].flatten().tolist() == [False] * (T - n) + [terminated] * n
+        done = torch.zeros(1, T, 1, dtype=torch.bool)
+        done[0, -1] = True
+        td = TensorDict({"observation": obs[None, :-1], "action": torch.nn.functional.one_hot(actions, 4)[None],
+                         "next": {"observation": obs[None, 1:], "reward": rewards.view(1, T, 1),
+                                  "terminated": done & terminated, "truncated": done & (not terminated),
+                                  "done": done}}, [1, T])
+        rb = make_replay_buffer(AgentTrainConfig(n_steps=n, gamma=gamma, buffer_size=64, network=dict(SMALL)))
+        rb.extend(td)
+        ref = rb[:][0]  # the first T - n windows, written by torchrl's MultiStepTransform
+        k = ref.shape[0]
+        assert k == T - n and demo["expert"].all()
+        torch.testing.assert_close(demo["next", "reward"][:k], ref["next", "reward"])
+        torch.testing.assert_close(demo["gamma"][:k], ref["gamma"].float())
+        assert torch.equal(demo["next", "observation"][:k], ref["next", "observation"])
+        assert torch.equal(demo["action"][:k], ref["action"])
+        assert torch.equal(demo["next", "terminated"][:k], ref["next", "terminated"])
+
+
+def test_teacher_reaches_the_goal_and_rejects_bad_parameters():
+    from cmlearn.rl.teacher import GeodesicTeacher
+    import cmlearn.rl as rl
+    env = MagneticParticleEnv(map_seeds=rl.map_seeds("train", 2))
+    teacher = GeodesicTeacher(env)
+    res = [run_episode(env, teacher, seed=i) for i in range(6)]
+    assert all(r.success for r in res), [r.reason for r in res]
+    with pytest.raises(ValueError, match="clearance_weight"):
+        GeodesicTeacher(env, clearance_weight=-1.0)
+
+
+def test_pretraining_on_demonstrations_imitates_the_teacher(tmp_path):
+    from cmlearn.rl.demos import collect_demonstrations
+    maps = [corridor()]
+    net = dict(stem_channels=8, widths=(8,), feature_dim=64, hidden_dim=64, num_cosines=32, num_policy_quantiles=16)
+    cfg = AgentTrainConfig(total_frames=64, init_random_frames=0, num_envs=2, frames_per_batch=32, updates_per_batch=1,
+                           buffer_size=1_024, max_steps=40, disturbance_probability=0.0, eval_every=10_000,
+                           eval_episodes=4, checkpoint_every=10_000, out=str(tmp_path / "run"), progress=False,
+                           seed=2, network=net, demo_episodes=6, pretrain_updates=1_000, lr=1e-3)
+    lines = []
+    res = train_agent(cfg, maps=maps, log=lines.append)
+    assert any(s.startswith("demonstrations: ") for s in lines) and any("pre-trained on demonstrations" in s
+                                                                        for s in lines), lines
+    assert res.evaluations[0]["phase"] == "pretrain" and res.updates >= 1_000
+    best_meta = load_agent(res.best_agent_path)[1]   # the best periodic evaluation is kept
+    assert best_meta["selected"]["success_rate"] == max(e["success_rate"] for e in res.evaluations)
+    env_kw = dict(maps=maps, atlas_cache=None, max_steps=40)
+    demos = collect_demonstrations(env_kw, 6, cfg.n_steps, cfg.gamma, seed=1_000_000 + 1_000 * cfg.seed,
+                                   log=lambda s: None)
+    expert = demos["action"].argmax(-1)
+
+    def agreement(net):
+        with torch.no_grad():
+            return (net(demos["observation"]).argmax(-1) == expert).float().mean().item()
+
+    majority = torch.bincount(expert).max().item() / len(expert)   # the best state-blind imitation
+    trained = agreement(load_agent(res.agent_path)[0].eval())
+    assert trained >= 0.9 and trained >= majority + 0.2, (trained, majority)
+    with pytest.raises(ValueError, match="pretrain_updates"):
+        AgentTrainConfig(pretrain_updates=10, network=dict(SMALL))

@@ -19,6 +19,12 @@ For a sampled batch of transitions ``(s, a, R^(n), s_n, terminated)``:
 
 The target network is the loss module's ``target_value_network_params`` (created by
 ``convert_to_functional``), updated by torchrl's ``HardUpdate`` / ``SoftUpdate``.
+
+Learning from demonstrations (DQfD, Hester et al. 2018): transitions marked ``expert = True`` add
+the large-margin classification loss ``max_a [Q(s, a) + margin 1{a != a_E}] - Q(s, a_E)`` (``Q`` the
+mean of the N online quantiles), times ``margin_weight`` and averaged over the batch, so that the
+demonstrated action's value stays above the others by ``margin``; without the key, or with
+``margin_weight = 0``, the loss is plain IQN.
 """
 from __future__ import annotations
 
@@ -61,6 +67,7 @@ class _Keys:
     priority: str = "td_error"
     priority_weight: str = "priority_weight"
     gamma: str = "gamma"
+    expert: str = "expert"
 
 
 class IQNLoss(LossModule):
@@ -74,6 +81,7 @@ class IQNLoss(LossModule):
         num_policy_quantiles: K for the double-Q argmax (default: the network's).
         kappa: the Huber threshold (1).
         noisy: evaluate the networks with their noise on (``ExplorationType.RANDOM``), as in Rainbow.
+        margin, margin_weight: the DQfD large-margin loss on ``expert`` transitions (0.8 and 1 in DQfD).
     """
 
     default_keys = _Keys
@@ -83,7 +91,7 @@ class IQNLoss(LossModule):
 
     def __init__(self, value_network: TensorDictModule, *, gamma: float = 0.99, num_quantiles: int = 32,
                  num_target_quantiles: int = 32, num_policy_quantiles: int | None = None, kappa: float = 1.0,
-                 noisy: bool = True):
+                 noisy: bool = True, margin: float = 0.8, margin_weight: float = 1.0):
         super().__init__()
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
@@ -92,11 +100,15 @@ class IQNLoss(LossModule):
                 raise ValueError(f"{name} must be an int >= 1, got {v!r}")
         if kappa <= 0:
             raise ValueError(f"kappa must be > 0, got {kappa}")
+        for name, v in (("margin", margin), ("margin_weight", margin_weight)):
+            if not (v >= 0 and v < float("inf")):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
         find_iqn_network(value_network)  # fail early on a network without an IQN head
         self.convert_to_functional(value_network, "value_network", create_target_params=True)
         self.gamma, self.kappa, self.noisy = float(gamma), float(kappa), noisy
         self.num_quantiles, self.num_target_quantiles = num_quantiles, num_target_quantiles
         self.num_policy_quantiles = num_policy_quantiles
+        self.margin, self.margin_weight = float(margin), float(margin_weight)
         self.keys = _Keys()
 
     @property
@@ -175,10 +187,22 @@ class IQNLoss(LossModule):
         _, y = self.target_quantiles(tensordict)
         taus = torch.rand(B, self.num_quantiles, device=obs.device)
         with self._mode(), self.value_network_params.to_module(self.value_network):
-            z = self.net.quantiles(obs, taus)
-        z = z.gather(-1, action.view(B, 1, 1).expand(B, z.shape[1], 1)).squeeze(-1)
+            z_all = self.net.quantiles(obs, taus)                          # (B, N, A)
+        z = z_all.gather(-1, action.view(B, 1, 1).expand(B, z_all.shape[1], 1)).squeeze(-1)
         per_sample = quantile_huber_loss(z, y, taus, self.kappa)
         tensordict.set(self.keys.priority, per_sample.detach().to(tensordict.device or per_sample.device))
         w = tensordict.get(self.keys.priority_weight, None)
         loss = (per_sample * w.reshape(B).to(per_sample.dtype)).mean() if w is not None else per_sample.mean()
-        return TensorDict({"loss": loss, "q_mean": z.detach().mean(), "td_error_mean": per_sample.detach().mean()})
+        out = {"q_mean": z.detach().mean(), "td_error_mean": per_sample.detach().mean()}
+        expert = tensordict.get(self.keys.expert, None)
+        if expert is not None and self.margin_weight > 0:
+            margin = self.margin_loss(z_all.mean(-2), action) * expert.reshape(B).to(z.dtype)
+            loss = loss + self.margin_weight * margin.mean()
+            out["margin_loss"] = margin.detach().sum() / expert.sum().clamp(min=1)
+        out["loss"] = loss
+        return TensorDict(out)
+
+    def margin_loss(self, q: Tensor, expert_action: Tensor) -> Tensor:
+        """Per-sample ``max_a [q_a + margin 1{a != a_E}] - q_{a_E}`` for values ``q`` (B, A)."""
+        l = torch.full_like(q, self.margin).scatter(-1, expert_action.view(-1, 1), 0.0)
+        return (q + l).max(-1).values - q.gather(-1, expert_action.view(-1, 1)).squeeze(-1)

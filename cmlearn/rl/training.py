@@ -69,6 +69,12 @@ class AgentTrainConfig:
     num_target_quantiles: int = 32
     kappa: float = 1.0
     network: dict = field(default_factory=dict)
+    # learning from demonstrations (DQfD; 0 episodes = plain Rainbow-IQN)
+    demo_episodes: int = 0
+    demo_batch: int = 8
+    pretrain_updates: int = 0
+    margin: float = 0.8
+    margin_weight: float = 1.0
     # bookkeeping
     seed: int = 0
     eval_every: int = 25_000
@@ -102,8 +108,17 @@ class AgentTrainConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
-        if self.init_random_frames < 0:
-            raise ValueError(f"init_random_frames must be >= 0, got {self.init_random_frames}")
+        for name in ("init_random_frames", "demo_episodes", "pretrain_updates"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be an int >= 0, got {getattr(self, name)!r}")
+        if not (isinstance(self.demo_batch, int) and 1 <= self.demo_batch):
+            raise ValueError(f"demo_batch must be an int >= 1, got {self.demo_batch!r}")
+        if self.pretrain_updates and not self.demo_episodes:
+            raise ValueError("pretrain_updates > 0 needs demonstrations (demo_episodes > 0)")
+        for name in ("margin", "margin_weight"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
         IQNConfig(**self.network)  # validate early
 
     @property
@@ -120,6 +135,7 @@ class TrainResult:
     resumed_from: int | None = None
     buffer_restored: bool | None = None
     agent_path: str = ""
+    best_agent_path: str = ""
 
 
 def _env_kwargs(cfg: AgentTrainConfig, maps) -> dict:
@@ -201,7 +217,8 @@ def _save_train_state(path: Path, state: dict) -> None:
 
 def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callable[[str], None] = print,
                 stop_after_frames: int | None = None) -> TrainResult:
-    """Train (or resume) and write ``<out>/train_state.pt`` (full state), ``<out>/agent.pt`` (weights) and logs.
+    """Train (or resume) and write ``<out>/train_state.pt`` (full state), ``<out>/agent.pt`` (weights),
+    ``<out>/best_agent.pt`` (the best periodic evaluation so far, its result under ``"selected"``) and logs.
 
     ``maps`` (a list of :class:`~cmlearn.rl.maps.Map`) replaces the procedural training maps.
     ``stop_after_frames`` ends the run early (as an interruption would) after writing a checkpoint."""
@@ -219,10 +236,19 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
     actor = make_iqn_actor(cfg.net_config)
     net = find_iqn_network(actor)
     loss = IQNLoss(actor, gamma=cfg.gamma, num_quantiles=cfg.num_quantiles,
-                   num_target_quantiles=cfg.num_target_quantiles, kappa=cfg.kappa)
+                   num_target_quantiles=cfg.num_target_quantiles, kappa=cfg.kappa, margin=cfg.margin,
+                   margin_weight=cfg.margin_weight)
     updater = HardUpdate(loss, value_network_update_interval=cfg.target_update)
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
     rb = make_replay_buffer(cfg)
+    demo_rb = None
+    if cfg.demo_episodes:  # regenerated from the seed on resume: the teacher is deterministic
+        from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        from .demos import collect_demonstrations
+        demos = collect_demonstrations(env_kwargs, cfg.demo_episodes, cfg.n_steps, cfg.gamma,
+                                       seed=1_000_000 + 1_000 * cfg.seed, log=log)
+        demo_rb = TensorDictReplayBuffer(storage=LazyTensorStorage(demos.numel()))
+        demo_rb.extend(demos)
 
     frames = updates = 0
     wall_before = 0.0
@@ -266,6 +292,65 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
         if tb is not None:
             tb.log_scalar(name, value, step=step)
 
+    keys = ["observation", "action", "gamma", ("next", "observation"), ("next", "reward"), ("next", "terminated")]
+
+    def update(sample, demo):
+        """One gradient step on a replay sample (priorities updated) plus, if given, demonstrations."""
+        batch = sample
+        if demo is not None:
+            batch = demo = demo.select(*keys, "expert")
+            demo.set("priority_weight", torch.ones(demo.shape[0]))
+            if sample is not None:
+                own = sample.select(*keys, "priority_weight")
+                own.set("expert", torch.zeros(own.shape[0], dtype=torch.bool))
+                batch = torch.cat([own, demo], 0)
+        out_td = loss(batch)
+        optim.zero_grad(set_to_none=True)
+        out_td["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.grad_clip)
+        optim.step()
+        if sample is not None:
+            sample.set("td_error", batch["td_error"][:sample.shape[0]])
+            rb.update_tensordict_priority(sample)
+        updater.step()
+        loss.reset_noise()
+        return out_td
+
+    def agent_meta(wall):
+        return {"frames": frames, "updates": updates, "wall_s": round(wall, 1), "command": command,
+                "train_config": asdict(cfg), "evaluations": evaluations,
+                "threads": cfg.threads, "workers": cfg.workers, "num_envs": cfg.num_envs}
+
+    best = max((e["success_rate"] for e in evaluations), default=-1.0)
+
+    def evaluate(wall, **extra):
+        """Greedy evaluation, logged; the best one so far is kept as ``best_agent.pt``."""
+        nonlocal best
+        ev = evaluate_agent(IQNAgent(net), env_kwargs, cfg.eval_episodes, seed=cfg.seed * 1_000 + 10_000)
+        net.train()
+        ev.update(frames=frames, updates=updates, wall_s=round(wall, 1), **extra)
+        evaluations.append(ev)
+        for k in ("success_rate", "mean_steps", "return"):
+            log_scalar(f"eval/{k}", ev[k], frames)
+        if ev["success_rate"] > best:
+            best = ev["success_rate"]
+            save_agent(out / "best_agent.pt", net, {**agent_meta(wall), "selected": ev})
+        return ev
+
+    if demo_rb is not None and frames == 0 and cfg.pretrain_updates:
+        t_pre = time.perf_counter()
+        for i in range(cfg.pretrain_updates):  # DQfD pre-training: demonstrations only
+            out_td = update(None, demo_rb.sample(cfg.batch_size))
+            updates += 1
+            if (i + 1) % 500 == 0 or i + 1 == cfg.pretrain_updates:
+                log_scalar("pretrain/loss", out_td["loss"].item(), updates)
+                log_scalar("pretrain/margin_loss", float(out_td["margin_loss"]), updates)
+        log(f"pre-trained on demonstrations: {cfg.pretrain_updates} updates in {time.perf_counter() - t_pre:.1f} s, "
+            f"loss {out_td['loss'].item():.4f}, margin loss {float(out_td['margin_loss']):.4f}")
+        wall_before += time.perf_counter() - t_pre
+        ev = evaluate(wall_before, phase="pretrain")
+        log(f"after pre-training: eval success {ev['success_rate']:.3f} steps {ev['mean_steps']:.1f}")
+
     init_random = cfg.init_random_frames if frames == 0 else 0
     learn_start = frames + (cfg.init_random_frames if not result.buffer_restored else 0)
     collector = _make_collector(cfg, actor, env_kwargs, cfg.seed + 7919 * (frames // cfg.frames_per_batch + 1),
@@ -289,10 +374,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
             rb.dumps(buffer_dir)
             (buffer_dir / "done").write_text(str(frames))
         _save_train_state(state_path, st)
-        meta = {"frames": frames, "updates": updates, "wall_s": round(wall, 1), "command": command,
-                "train_config": asdict(cfg), "evaluations": evaluations,
-                "threads": cfg.threads, "workers": cfg.workers, "num_envs": cfg.num_envs}
-        save_agent(out / "agent.pt", net, meta)
+        save_agent(out / "agent.pt", net, agent_meta(wall))
         return wall
 
     try:
@@ -305,15 +387,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
                 frac = min(1.0, frames / cfg.total_frames)
                 rb.sampler.beta = cfg.priority_beta + (1.0 - cfg.priority_beta) * frac
                 for _ in range(cfg.updates_per_batch):
-                    sample = rb.sample()
-                    out_td = loss(sample)
-                    optim.zero_grad(set_to_none=True)
-                    out_td["loss"].backward()
-                    torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.grad_clip)
-                    optim.step()
-                    rb.update_tensordict_priority(sample)
-                    updater.step()
-                    loss.reset_noise()
+                    out_td = update(rb.sample(), demo_rb.sample(cfg.demo_batch) if demo_rb is not None else None)
                     updates += 1
                     last_loss = out_td["loss"].item()
                 collector.update_policy_weights_()
@@ -325,12 +399,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
                 bar.set_postfix(loss=f"{last_loss:.3f}", updates=updates, rb=len(rb))
             if frames >= next_eval or frames >= cfg.total_frames:
                 next_eval += cfg.eval_every
-                ev = evaluate_agent(IQNAgent(net), env_kwargs, cfg.eval_episodes, seed=cfg.seed * 1_000 + 10_000)
-                net.train()
-                ev.update(frames=frames, updates=updates, wall_s=round(wall_before + time.perf_counter() - t0, 1))
-                evaluations.append(ev)
-                for k in ("success_rate", "mean_steps", "return"):
-                    log_scalar(f"eval/{k}", ev[k], frames)
+                ev = evaluate(wall_before + time.perf_counter() - t0)
                 log(f"frames {frames} updates {updates} eval success {ev['success_rate']:.3f} "
                     f"steps {ev['mean_steps']:.1f} return {ev['return']:.3f} loss {last_loss:.4f}")
             stop = frames >= cfg.total_frames or (stop_after_frames is not None and frames >= stop_after_frames)
@@ -347,6 +416,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
     result.wall_s = wall_before + time.perf_counter() - t0
     result.evaluations = evaluations
     result.agent_path = str(out / "agent.pt")
+    result.best_agent_path = str(out / "best_agent.pt") if (out / "best_agent.pt").is_file() else ""
     (out / "summary.json").write_text(json.dumps(asdict(result), indent=2))
     return result
 
