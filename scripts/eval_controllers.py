@@ -1,6 +1,7 @@
 """Evaluate Sub-controller 2 candidates inside the switching controller (thesis Section 4.1.3).
 
-For each controller (``iqn``: the trained Rainbow-IQN agent of ``--agent``, ``attractor``, ``errt``,
+For each controller (``iqn``: the trained Rainbow-IQN agent of ``--agent`` inside its
+:class:`~cmlearn.rl.agent.ActingGuard`, ``iqn_greedy``: the same, plain greedy, ``attractor``, ``errt``,
 ``random``, ``teacher``: the privileged map-reading teacher of :mod:`cmlearn.rl.teacher`) and each setting (undisturbed /
 disturbed x training maps / unseen maps) it runs ``--episodes`` seeded episodes with random
 start and goal (the same seeds for every controller) and reports: success rate with its 95 %
@@ -76,9 +77,9 @@ def make_controller(name: str, env, seed: int, agent: str = ""):
     from cmlearn.planning import AttractorController, ERRTController
     from cmlearn.rl import RandomPolicy
     mpp = env.unwrapped.config.camera.metres_per_pixel
-    if name == "iqn":
-        from cmlearn.rl.agent import IQNAgent
-        return IQNAgent.load(agent)
+    if name in ("iqn", "iqn_greedy"):  # with / without the obstacle mask and revisit tie-break
+        from cmlearn.rl.agent import ActingGuard, IQNAgent
+        return IQNAgent.load(agent, guard=ActingGuard() if name == "iqn" else None)
     if name == "attractor":
         return AttractorController(mpp)
     if name == "errt":
@@ -88,7 +89,7 @@ def make_controller(name: str, env, seed: int, agent: str = ""):
     if name == "teacher":  # privileged (reads the map): a reference, not a robot controller
         from cmlearn.rl.teacher import GeodesicTeacher
         return GeodesicTeacher(env)
-    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, attractor, errt, random, teacher)")
+    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, iqn_greedy, attractor, errt, random, teacher)")
 
 
 def plot_episode(res, map_, path: Path, title: str):

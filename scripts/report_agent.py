@@ -25,7 +25,8 @@ def main(argv=None):
 
     from cmlearn.io import atomic_write, write_text_atomic
     meta = json.loads(Path(a.agent).read_text())
-    ev = meta.get("evaluations") or []
+    run = meta.get("run") or {}  # shipped with --ship-best: the whole run's evaluations are under "run"
+    ev = run.get("evaluations") or meta.get("evaluations") or []
     if not ev:
         raise SystemExit(f"{a.agent}: no evaluations recorded")
     cfg = meta.get("train_config", {})
@@ -42,10 +43,14 @@ def main(argv=None):
     lines = [f"Training of `{Path(a.agent).with_suffix('.pt').name}`: `{meta.get('command', '')}`; "
              f"{meta.get('frames')} frames, {meta.get('updates')} updates, {meta.get('wall_s')} s wall "
              f"({meta.get('threads')} thread(s), {meta.get('workers')} collector process(es) x "
-             f"{meta.get('num_envs')} envs).", "",
+             f"{meta.get('num_envs')} envs)." + (
+                 f" The whole run: {run.get('frames')} frames, {run.get('updates')} updates, {run.get('wall_s')} s; "
+                 f"shipped: the network of its best evaluation (`--ship-best`), after {meta.get('frames')} frames "
+                 f"and {meta.get('updates')} updates." if run else ""), "",
              "| frames | updates | wall (min) | success | mean decisions | mean return |", "|---|---|---|---|---|---|"]
-    lines += [f"| {e['frames']} | {e['updates']} | {e['wall_s'] / 60:.1f} | {100 * e['success_rate']:.0f} % | "
-              f"{e['mean_steps']:.1f} | {e['return']:.3f} |" for e in ev]
+    tag = {"pretrain": " (after pre-training)"}
+    lines += [f"| {e['frames']}{tag.get(e.get('phase'), '')} | {e['updates']} | {e['wall_s'] / 60:.1f} | "
+              f"{100 * e['success_rate']:.0f} % | {e['mean_steps']:.1f} | {e['return']:.3f} |" for e in ev]
     md = "\n".join(lines) + "\n"
     write_text_atomic(out.with_suffix(".md"), md)
     print(md)

@@ -362,3 +362,39 @@ def test_pretraining_on_demonstrations_imitates_the_teacher(tmp_path):
     assert trained >= 0.9 and trained >= majority + 0.2, (trained, majority)
     with pytest.raises(ValueError, match="pretrain_updates"):
         AgentTrainConfig(pretrain_updates=10, network=dict(SMALL))
+
+
+def test_acting_guard_predicts_the_obstacle_rule_and_breaks_cycles():
+    from cmlearn.rl.agent import ActingGuard
+    from cmlearn.rl.env import ACTIONS
+    import cmlearn.rl as rl
+    env = MagneticParticleEnv(map_seeds=rl.map_seeds("train", 1))
+    env.reset(seed=0)
+    m, guard = env.map, ActingGuard()
+    rng = np.random.default_rng(0)
+    agree, total, positives = 0, 0, 0
+    for _ in range(150):   # nodes near the channels: the rule's answer for each move, from the current view only
+        i, j = int(rng.integers(2, m.nx - 2)), int(rng.integers(2, m.ny - 2))
+        x, y = m.node_xy(i, j)
+        pred = guard.blocked(env.atlas.view(x, y))
+        for a, (dx, dy) in enumerate(ACTIONS):
+            truth = env.obstacle_detected(env.atlas.view(x + 0.01 * dx, y + 0.01 * dy))
+            agree += pred[a] == truth
+            positives += truth
+            total += 1
+    assert agree / total >= 0.97 and 0.05 < positives / total < 0.95, (agree / total, positives / total)
+    # a wrong sign on the shift would mispredict most moves along the walls
+    flipped = ActingGuard(actions=tuple((-dx, -dy) for dx, dy in ACTIONS))
+    i, j = next((i, j) for i in range(m.nx) for j in range(m.ny)
+                if m.safe[i, j] and guard.blocked(env.atlas.view(*m.node_xy(i, j))).any())
+    v = env.atlas.view(*m.node_xy(i, j))
+    assert not np.array_equal(guard.blocked(v), flipped.blocked(v))
+    # revisit tie-break: the same observation twice gets the second-best move the second time
+    agent = IQNAgent(IQNNetwork(IQNConfig(**SMALL)), guard=ActingGuard(obstacle_mask=False))
+    obs = np.zeros((2, 84, 84), np.uint8)
+    order = np.argsort(-agent.q_values(obs))
+    assert [agent.act(obs) for _ in range(2)] == [order[0], order[1]]
+    agent.reset()
+    assert agent.act(obs) == order[0]
+    with pytest.raises(ValueError, match="revisit_penalty"):
+        ActingGuard(revisit_penalty=-1.0)

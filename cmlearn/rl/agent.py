@@ -8,11 +8,21 @@ with a JSON copy of ``meta`` (training command, wall time, frames, evaluation) n
 :meth:`IQNAgent.act` follows the ``SubController2`` protocol of :mod:`cmlearn.rl.switching`, so
 the agent runs inside the switching controller through :func:`~cmlearn.rl.switching.run_episode`.
 Acting is deterministic: mean weights (no noise) and the fixed quantile midpoints.
+
+:class:`ActingGuard` (optional, used for the deployed Sub-controller 2 in
+``scripts/eval_controllers.py``) wraps the greedy choice in two rules that use only the
+observation: (1) moves whose next camera window the obstacle rule would call an obstacle are
+masked -- the next window is the current view shifted by one move (``shift_px`` = action step /
+metres per pixel = 7 px), the same mean-below-threshold test the environment applies; (2) a
+revisit tie-break: the values of the moves already taken from an identical observation in this
+episode are lowered by ``revisit_penalty`` per time taken, which breaks the two-state cycles a
+memoryless greedy policy can fall into.
 """
 from __future__ import annotations
 
 import io
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +31,7 @@ import torch
 from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, IQNNetwork
 
-__all__ = ["AGENT_FORMAT", "IQNAgent", "save_agent", "load_agent", "CheckpointError"]
+__all__ = ["AGENT_FORMAT", "IQNAgent", "ActingGuard", "save_agent", "load_agent", "CheckpointError"]
 
 AGENT_FORMAT = "cmlearn-iqn-agent/1"
 
@@ -61,15 +71,51 @@ def load_agent(path: str | Path) -> tuple[IQNNetwork, dict]:
     return net.eval(), blob.get("meta", {})
 
 
-class IQNAgent:
-    """Greedy, deterministic policy of a trained :class:`IQNNetwork`: ``act(obs, info) -> action``."""
+@dataclass(frozen=True)
+class ActingGuard:
+    """Obstacle mask and revisit tie-break around the greedy action (see the module docstring).
 
-    def __init__(self, network: IQNNetwork, meta: dict | None = None):
-        self.network, self.meta = network.eval(), dict(meta or {})
+    Defaults match the environment's defaults: 1 cm moves, 84 px over 12 cm, threshold 150 over
+    the central 15 x 15 pixels, actions +x, -x, +y, -y (image rows grow toward -y)."""
+    obstacle_mask: bool = True
+    shift_px: int = 7
+    threshold: float = 150.0
+    window: int = 15
+    revisit_penalty: float = 1.0
+    actions: tuple = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+
+    def __post_init__(self):
+        if not (isinstance(self.shift_px, int) and self.shift_px >= 0):
+            raise ValueError(f"shift_px must be an int >= 0, got {self.shift_px!r}")
+        if not (isinstance(self.window, int) and self.window >= 1):
+            raise ValueError(f"window must be an int >= 1, got {self.window!r}")
+        if not (np.isfinite(self.revisit_penalty) and self.revisit_penalty >= 0):
+            raise ValueError(f"revisit_penalty must be finite and >= 0, got {self.revisit_penalty}")
+
+    def blocked(self, view: np.ndarray) -> np.ndarray:
+        """(num_actions,) bool: the obstacle rule on the window each move would bring under the camera."""
+        n = view.shape[-1]
+        s0 = (n - self.window) // 2
+        out = np.zeros(len(self.actions), bool)
+        for a, (dx, dy) in enumerate(self.actions):
+            r0, c0 = s0 - int(round(dy * self.shift_px)), s0 + int(round(dx * self.shift_px))
+            if min(r0, c0) < 0 or max(r0, c0) + self.window > n:
+                raise ValueError(f"shift_px={self.shift_px} and window={self.window} leave the {n} px view")
+            out[a] = float(view[r0:r0 + self.window, c0:c0 + self.window].mean()) < self.threshold
+        return out
+
+
+class IQNAgent:
+    """Greedy, deterministic policy of a trained :class:`IQNNetwork`: ``act(obs, info) -> action``,
+    optionally inside an :class:`ActingGuard`."""
+
+    def __init__(self, network: IQNNetwork, meta: dict | None = None, guard: ActingGuard | None = None):
+        self.network, self.meta, self.guard = network.eval(), dict(meta or {}), guard
+        self._taken: dict = {}
 
     @classmethod
-    def load(cls, path: str | Path) -> "IQNAgent":
-        return cls(*load_agent(path))
+    def load(cls, path: str | Path, guard: ActingGuard | None = None) -> "IQNAgent":
+        return cls(*load_agent(path), guard=guard)
 
     def q_values(self, obs) -> np.ndarray:
         """Mean-quantile action values (num_actions,) for one observation (2, 84, 84)."""
@@ -79,7 +125,19 @@ class IQNAgent:
             return self.network(x)[0].numpy()
 
     def act(self, obs, info=None) -> int:
-        return int(np.argmax(self.q_values(obs)))
+        q = self.q_values(obs).astype(np.float64)
+        g = self.guard
+        if g is None:
+            return int(np.argmax(q))
+        obs = np.asarray(obs)
+        if g.obstacle_mask:
+            blocked = g.blocked(obs[0])
+            if not blocked.all():
+                q[blocked] = -np.inf
+        taken = self._taken.setdefault(obs.tobytes(), np.zeros(len(q)))
+        a = int(np.argmax(q - g.revisit_penalty * taken))
+        taken[a] += 1
+        return a
 
     def reset(self, info=None) -> None:
-        pass
+        self._taken = {}
