@@ -9,6 +9,13 @@ collectors are the path beyond one machine), a ``TensorDictPrioritizedReplayBuff
 installed) logs through ``torchrl.record.loggers``, periodic greedy evaluation inside the
 switching controller, and atomic checkpoints with resume.
 
+Learning from demonstrations (DQfD, Hester et al. 2018; off by default): ``demo_episodes``
+episodes of the privileged :class:`~cmlearn.rl.teacher.GeodesicTeacher` become a second, fixed
+replay of n-step transitions (:mod:`cmlearn.rl.demos`); ``pretrain_updates`` updates on them
+alone come first, then every update adds ``demo_batch`` of them to the 32 own transitions, and
+the loss adds the large-margin term on them (:class:`IQNLoss`). The pre-training is not
+checkpointed on its own: a run interrupted during it starts again.
+
 Hyper-parameters start from the IQN paper (Dabney et al. 2018) and Rainbow (Hessel et al. 2018)
 as used in Rainbow-IQN (Toromanoff et al. 2019), changed for a 2-core CPU and a short, sparse task
 (see :class:`AgentTrainConfig`): N = N' = K = 32 quantiles (paper: 64, 64, 32), replay of 100k
