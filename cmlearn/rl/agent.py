@@ -31,6 +31,8 @@ import torch
 from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, IQNNetwork
 
+from .env import ACTIONS
+
 __all__ = ["AGENT_FORMAT", "IQNAgent", "ActingGuard", "save_agent", "load_agent", "CheckpointError"]
 
 AGENT_FORMAT = "cmlearn-iqn-agent/1"
@@ -82,7 +84,7 @@ class ActingGuard:
     threshold: float = 150.0
     window: int = 15
     revisit_penalty: float = 1.0
-    actions: tuple = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+    actions: tuple = ACTIONS
 
     def __post_init__(self):
         if not (isinstance(self.shift_px, int) and self.shift_px >= 0):
