@@ -1,27 +1,31 @@
-"""The compiled fast path of the Cosserat shooting (``CosseratSolver(..., compile=True)``): one RK4
-step with its six tangents as a single fused pointwise loop over the problems, compiled ahead of
-the solve and called through a thin wrapper.
+"""The compiled fast path of the Cosserat shooting (``CosseratSolver(..., compile=True)``): a whole
+Levenberg-Marquardt iteration (the shot through the grid with its six tangents, then the update) as
+one compiled program, called through a thin wrapper.
 
-Layout. The state of ``N`` problems is one tensor ``Z`` (91, N): rows 0-12 the primal ``y`` and rows
-``13 + 13 j + c`` the tangent ``dy_c/dxi_j``, each row contiguous over the problems, so that the
-compiled loop runs over ``N`` with vector loads and stores. The primal right-hand side and its
-intermediates (``R``, ``v``, ``u``, ``p'``) are computed once per problem and shared by the six
-tangents (the variational equation of :mod:`physics.cosserat_ode`, written out per component);
-``n' = -f`` does not depend on the state, so the tangents of ``n`` only change at the jumps.
+Layout. For batches of 8 problems or more the state of ``N`` problems is one tensor ``Z`` (91, N):
+rows 0-12 the primal ``y`` and rows ``13 + 13 j + c`` the tangent ``dy_c/dxi_j``, each row
+contiguous over the problems, so that the compiled loops run over ``N`` with vector loads and
+stores; the primal right-hand side and its intermediates (``R``, ``v``, ``u``, ``p'``) are computed
+once per problem and shared by the six tangents (the variational equation of
+:mod:`physics.cosserat_ode`, written out per component); ``n' = -f`` does not depend on the state, so
+the tangents of ``n`` only change at the jumps. Smaller batches run on six *lanes* (``Z`` (N, 6, 26):
+lane ``j`` a copy of the primal and the tangent ``dy/dxi_j``), which inductor fuses into one loop
+per step.
 
-Compilation. A step is traced with ``make_fx`` (fake tensors: a data-dependent branch anywhere, e.g.
-in a field hook, fails the trace and the solver falls back to :mod:`physics.cosserat_lanes`) and
-compiled with ``torch._inductor.compile``; the callable it returns costs a few microseconds a call,
-against about 30 us for a ``torch.compile`` d function (guards, config and autograd wrappers),
-which dominated the per-step cost at batch 1. Two step programs per batch shape: without magnets,
-and with the (masked) magnet code and the field. The field hook's tensors are inputs of the program
-(a field object is rebuilt around the traced inputs), so a new field of the same kind and shapes
-reuses it. Each row of the step table (grid step: ``h``, compliances, intrinsic strains; its loads;
-which magnets sit at its end node) is its own contiguous tensor.
-
-A Levenberg-Marquardt update (accept/reject, gain ratio, damped normal equations by an unrolled
-Cholesky) with the start state of the next shot is a third program: a warm solve is then a few
-shots of ``n_nodes - 1`` step calls and one update call each.
+Compilation. An iteration is traced with ``make_fx`` (fake tensors: a data-dependent branch
+anywhere, e.g. in a field hook, fails the trace and the solver falls back to
+:mod:`physics.cosserat_lanes`) and compiled with ``torch._inductor.compile``; the callable it returns
+costs a few microseconds a call, against about 30 us for a ``torch.compile`` d function (guards,
+config and autograd wrappers). The grid is unrolled in the program and each step applies only the
+magnets at its end node; the field hook's tensors are inputs of the program (a field object is
+rebuilt around the traced inputs), so a new field of the same kind and shapes reuses it. On lanes a
+shot of more than ``MAX_ROWS`` grid steps is split into near-equal stretches, one program each (the
+last one with the update), which bounds the size of a generated kernel (and its compile time, about
+15 s per step here). A warm solve at batch 1 is then a few calls, one per LM iteration: the kernel
+costs about 180 us for the 12 steps of the Paper II rod and the call a few us, where one program
+per step cost 52 calls of 7-36 us of kernel plus 5-10 us of call each. In the layout for batches a
+fused shot compiled for more than ten minutes, so there every step is its own program (the call
+overhead is small against the work of a batch); the programs of steps without magnets are shared.
 """
 from __future__ import annotations
 
@@ -116,17 +120,18 @@ def _axpy(a, c, b):
 
 
 # ----------------------------------------------------------------------------------------- one step
-def step_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float):
-    """The step ``(Z, row, [mag_moment, mag_mass, gravity, field_scale, *field_tensors]) -> Z'``
-    (``Z`` (91, N), ``row`` (N | 1, 25 + K): h, K_s^-1, K_b^-1, v_hat, u_hat, distributed force and
-    moment, point force and moment at the end node, magnet flags)."""
+def step_program(mags: tuple[int, ...], batch: tuple[int, ...], field_rebuild, t: float, fd_step: float):
+    """The step ``(Z, row, mag_moment, mag_mass, gravity, field_scale, *field_tensors) -> Z'``
+    (``Z`` (91, N), ``row`` (N | 1, 25): h, K_s^-1, K_b^-1, v_hat, u_hat, distributed force and
+    moment, point force and moment at the end node) with the point wrenches of the magnets ``mags``
+    (indices) at its end node."""
 
     def step(Z, row, *rest):
         zs = Z.unbind(0)
         y, T = zs[:13], [zs[13 + 13 * j: 26 + 13 * j] for j in range(6)]
         r = row.unbind(-1)
         h, ks, kb, vh, uh = r[0], r[1:4], r[4:7], r[7:10], r[10:13]
-        f, tau, F, M, fl = r[13:16], r[16:19], r[19:22], r[22:25], r[25:]
+        f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
         k1, c1 = _rhs(y, ks, kb, vh, uh, f, tau)
         d1 = [_rhs_tangent(y, c1, tj, ks, kb) for tj in T]
         y2 = _axpy(y, h / 2, k1)
@@ -146,8 +151,8 @@ def step_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float,
         T = [[a if b is None else a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(*z)]
              for z in zip(T, d1, d2, d3, d4)]
         end_of_step(y, T, F, M)
-        if magnets:
-            dy, dT = _magnet_jumps(y, T, fl, rest, batch, field_rebuild, t, fd_step)
+        if mags:
+            dy, dT = _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step)
             y[7:13] = [a + b for a, b in zip(y[7:13], dy)]
             for tj, dj in zip(T, dT):
                 tj[7:13] = [a + b for a, b in zip(tj[7:13], dj)]
@@ -158,8 +163,8 @@ def step_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float,
     return step
 
 
-def _magnet_jumps(y, T, fl, rest, batch, field_rebuild, t, fd_step):
-    """Point wrenches of the magnets flagged in ``fl`` at the step's end node, from the primal ``y``
+def _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step):
+    """Point wrenches of the magnets ``mags`` (indices) at the step's end node, from the primal ``y``
     (13 components (N,)) and tangents ``T`` (6 lists of 13): the increments of ``n``, ``m`` (6 (N,))
     and of their tangents (6 lists of 6)."""
     mag_moment, mag_mass, gravity, field_scale, *ftens = rest
@@ -181,7 +186,7 @@ def _magnet_jumps(y, T, fl, rest, batch, field_rebuild, t, fd_step):
     field = field_rebuild(ftens) if field_rebuild is not None else None
     dy = [0.0] * 6
     dT = [[0.0] * 6 for _ in T]
-    for k in range(len(fl)):
+    for k in mags:
         mub = mag_moment[..., k, :].unbind(-1)  # (N | 1,) each
         mu = vec(_mv(R, mub))
         dmu = vec6([_mv(S, mub) for S in dR])
@@ -198,16 +203,17 @@ def _magnet_jumps(y, T, fl, rest, batch, field_rebuild, t, fd_step):
         W = (*Fm.expand(N, 3).unbind(-1), *Tm.expand(N, 3).unbind(-1))
         dF, dM = dF.expand(N, 6, 3), dM.expand(N, 6, 3)
         for i in range(6):
-            dy[i] = dy[i] - fl[k] * W[i]
+            dy[i] = dy[i] - W[i]
             for j in range(len(T)):
-                dT[j][i] = dT[j][i] - fl[k] * (dF if i < 3 else dM)[:, j, i % 3]
+                dT[j][i] = dT[j][i] - (dF if i < 3 else dM)[:, j, i % 3]
     return dy, dT
 
 
-def lane_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float):
+def lane_program(mags: tuple[int, ...], batch: tuple[int, ...], field_rebuild, t: float, fd_step: float):
     """The step on lanes for small batches: ``Z`` (N, 6, 26) holds in lane ``j`` a copy of the primal
-    (last dim 0-12) and the tangent ``dy/dxi_j`` (13-25), so that six lanes share one vector register
-    (see :mod:`physics.cosserat_lanes`); ``row`` and ``rest`` as in :func:`step_program`."""
+    (last dim 0-12) and the tangent ``dy/dxi_j`` (13-25) (see :mod:`physics.cosserat_lanes`); ``row``
+    and ``rest`` as in :func:`step_program`. (A lane-minor layout (26, N, 6) that inductor vectorises
+    over the lanes was measured slower, and fused over a shot it crashed gcc 12.)"""
 
     def step(Z, row, *rest):
         zs = Z.unbind(-1)
@@ -217,11 +223,10 @@ def lane_program(magnets: bool, batch: tuple[int, ...], field_rebuild, t: float,
         f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
 
         y, tg = rk4_tangent_step(y, tg, h, ks, kb, vh, uh, f, tau, F, M)
-        if magnets:
-            fl = row.unbind(-1)[25:]
+        if mags:
             y0 = [c.expand(Z.shape[:-1])[:, 0] for c in y]
             T = [[c.expand(Z.shape[:-1])[:, j] for c in tg] for j in range(6)]
-            dy, dT = _magnet_jumps(y0, T, fl, rest, batch, field_rebuild, t, fd_step)
+            dy, dT = _magnet_jumps(y0, T, mags, rest, batch, field_rebuild, t, fd_step)
             lane = torch.eye(6, dtype=Z.dtype, device=Z.device)
             for i in range(6):  # multiply-adds with one-hot lanes, not a stack (no concat buffers)
                 y[7 + i] = y[7 + i] + dy[i].unsqueeze(-1)
@@ -251,27 +256,45 @@ def split_state(Z: Tensor, lanes: bool) -> tuple[Tensor, Tensor]:
     return Z[:13].transpose(0, 1), Z[13:].reshape(6, 13, -1).permute(2, 0, 1)
 
 
-def lm_program(lanes: bool, scales, record_base: bool):
-    """One Levenberg-Marquardt update after a shot (``physics.cosserat_shooting._lm_math``) from the
-    shot's states ``Zs``, and the base state of the next trial."""
+def shot_program(lanes: bool, magnet_rows, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float,
+                 scales, record_base: bool, start: bool, n_prev: int | None):
+    """A stretch of rows of one Levenberg-Marquardt iteration as one program (row ``i`` applies the point
+    wrenches of the magnets ``magnet_rows[i]`` at its end node), from the trial base wrench ``xt``
+    (``start``) or the state ``Z`` of the previous stretch:
+    ``(Z, rows (R, N | 1, 25), x, r, J, Y, rn, lam, act, xt, its, budget, tol, live, base_p, base_q, *rest)
+    -> (Z, its node states (N, R', 13))``. The last stretch (``n_prev`` not ``None``) takes the node
+    states of the ``n_prev`` stretches before it after ``rest`` and ends with the update of
+    ``physics.cosserat_shooting._lm_math`` (accept or reject the trial, next trial):
+    ``-> (x, r, J, Y, rn, lam, its, act, next xt)``."""
     from .cosserat_shooting import _lm_math
+    make = lane_program if lanes else step_program
+    steps = [make(m, batch, field_rebuild, t, fd_step) for m in magnet_rows]
     fs, ms = scales
 
-    def update(x, r, J, Y, rn, lam, act, xt, its, budget, tol, live, base_p, base_q, *Zs):
+    def run(Z, rows, x, r, J, Y, rn, lam, act, xt, its, budget, tol, live, base_p, base_q, *rest):
+        prev = ()
+        if n_prev:
+            rest, prev = rest[:-n_prev], rest[-n_prev:]
+        ys = []
+        if start:
+            Z = initial_state(xt, base_p, base_q, scales, lanes)
+            if record_base:
+                ys.append(split_state(Z, lanes)[0])
+        for step, row in zip(steps, rows.unbind(0)):
+            Z = step(Z, row, *rest)
+            ys.append(split_state(Z, lanes)[0])
+        Yt = torch.stack(ys, -2)
+        if n_prev is None:
+            return Z.contiguous(), Yt.contiguous()
+        Yt = torch.cat((*prev, Yt), -2)
         sc = torch.tensor([fs] * 3 + [ms] * 3, dtype=x.dtype, device=x.device)
-        yl, Tl = split_state(Zs[-1], lanes)
+        yl, Tl = split_state(Z, lanes)
         rt = yl[:, 7:13] / sc
         Jt = Tl[..., 7:13].transpose(-1, -2) / sc.unsqueeze(-1)
-        ys = [split_state(z, lanes)[0] for z in Zs]
-        if record_base:
-            N = x.shape[0]
-            ys.insert(0, torch.cat((base_p.expand(N, 3), base_q.expand(N, 4), xt * sc), -1))
-        Yt = torch.stack(ys, -2)
-        x, r, J, Y, rn, lam, its, act, xn = _lm_math(x, r, J, Y, rn, lam, act, xt, rt, Jt, Yt, its, budget, tol, live)
-        out = (x, r, J, Y, rn, lam, its, act, xn, initial_state(xn, base_p, base_q, scales, lanes))
+        out = _lm_math(x, r, J, Y, rn, lam, act, xt, rt, Jt, Yt, its, budget, tol, live)
         return tuple(o.contiguous() for o in out)  # the same strides as the inputs of the next call
 
-    return update
+    return run
 
 
 # ----------------------------------------------------------------------------------------- fields
@@ -344,6 +367,9 @@ def compile_program(fn, inputs: list[Tensor]):
 _PROGRAMS: dict = {}
 _FAILED: set = set()
 LANES_BELOW = 8  # batches smaller than this run on lanes (six tangents in one vector register)
+MAX_ROWS = 16  # grid steps per program on lanes (a longer shot is split into near-equal stretches); one
+# step per program in the layout for batches (fused, those compile for many minutes)
+_EMPTY = torch.empty(0)
 
 
 def _flat(v: Tensor, shp: tuple[int, ...], trail: int) -> Tensor:
@@ -357,79 +383,128 @@ def _sig(ts) -> tuple:
     return tuple((tuple(a.shape), a.stride(), a.dtype) for a in ts)
 
 
-def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: float, live: Tensor, step_tab,
-            compiled: bool = True):
-    """:meth:`CosseratSolver._lm` on the compiled programs; ``None`` where the field hook cannot be
-    traced (the caller then takes the ``torch.compile`` path). ``compiled=False`` runs the same programs
-    eagerly (tests)."""
+def _prepared(solver, prm, loads, shp: tuple[int, ...], lanes: bool, step_tab):
+    """The loop-invariant inputs of the iteration program for ``prm`` and ``loads``: ``(tabs, rows, rest
+    without the field tensors, base position, base quaternion)``, cached while the same ``prm`` and
+    ``loads`` objects come back (the solver hands out one ``StaticLoads`` per set of number inputs)."""
     from .cosserat import broadcast_shape
     from .cosserat_lanes import lane_tables
+    key = (id(solver), id(prm), id(loads), shp, lanes)
+    hit = _PREP.get(key)
+    if hit is not None and hit[0] is prm and hit[1] is loads and hit[2] is step_tab:
+        return hit[3]
+    tabs = lane_tables(prm, solver.rod.grid, loads, step_tab)
+    st, ld = tabs.step, tabs.loads
+    nr = st.shape[-2]
+    bs = broadcast_shape(st.shape[:-2], ld.shape[:-2])
+    rows = torch.cat((st.expand(*bs, nr, 13), ld.expand(*bs, nr, 12)), -1)
+    rows = _flat(rows, shp, 2).movedim(-2, 0).contiguous() if bs else rows.unsqueeze(1).contiguous()
+    rest = [_flat(prm.magnet_moment, shp, 2), _flat(prm.magnet_mass, shp, 1), _flat(loads.gravity, shp, 1),
+            _flat(loads.field_scale.reshape(*loads.field_scale.shape, 1), shp, 1).reshape(-1)]
+    out = (tabs, rows, [a.contiguous() for a in rest], _flat(loads.base_position, shp, 1),
+           _flat(loads.base_quaternion, shp, 1))
+    if len(_PREP) >= 64:
+        _PREP.clear()
+    _PREP[key] = (prm, loads, step_tab, out)  # (the references keep the ids from being reused)
+    return out
+
+
+def _start(N: int, n_rec: int, lam0: float, tol: float, dtype, device):
+    """Start values of the LM state (r, J, Y, |r|, lambda, tol); the programs never write to their inputs,
+    so these are shared between solves."""
+    key = (N, n_rec, lam0, tol, dtype, str(device))
+    if key not in _STARTS:
+        kw = dict(dtype=dtype, device=device)
+        _STARTS[key] = (torch.zeros(N, 6, **kw), torch.eye(6, **kw).expand(N, 6, 6).contiguous(),
+                        torch.zeros(N, n_rec, 13, **kw), torch.full((N,), math.inf, **kw),
+                        torch.full((N,), lam0, **kw), torch.tensor(tol, **kw))
+    return _STARTS[key]
+
+
+_PREP: dict = {}
+_STARTS: dict = {}
+
+
+def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: float, live: Tensor, step_tab,
+            compiled: bool = True, flat=None):
+    """:meth:`CosseratSolver._lm` on the compiled iteration program; ``None`` where the field hook
+    cannot be traced (the caller then takes the ``torch.compile`` path). ``compiled=False`` runs the
+    same program eagerly (tests); ``flat``: :func:`flatten_field` of ``field`` when already known."""
     from .cosserat_shooting import _spd_unrolled
-    flat = flatten_field(field)
+    flat = flatten_field(field) if flat is None else flat
     if flat is None:
         return None
     fkey, ftens, rebuild = flat
     shp = tuple(x.shape[:-1])
     N = math.prod(shp)
     lanes = N < LANES_BELOW
-    grid = solver.rod.grid
-    tabs = lane_tables(prm, grid, loads, step_tab)
-    st, ld, K = tabs.step, tabs.loads, tabs.flags.shape[-1]
-    nr = st.shape[-2]
-    bs = broadcast_shape(st.shape[:-2], ld.shape[:-2])
-    rows = torch.cat((st.expand(*bs, nr, 13), ld.expand(*bs, nr, 12), tabs.flags.expand(*bs, nr, K)), -1)
-    rows = _flat(rows, shp, 2).movedim(-2, 0).contiguous() if bs else rows.unsqueeze(1).contiguous()
-    rowl = rows.unbind(0)
-    rest = [_flat(prm.magnet_moment, shp, 2), _flat(prm.magnet_mass, shp, 1), _flat(loads.gravity, shp, 1),
-            _flat(loads.field_scale.reshape(*loads.field_scale.shape, 1), shp, 1).reshape(-1), *ftens]
-    rest = [a.contiguous() for a in rest]
-    bp, bq = _flat(loads.base_position, shp, 1), _flat(loads.base_quaternion, shp, 1)
+    tabs, rows, rest, bp, bq = _prepared(solver, prm, loads, shp, lanes, step_tab)
+    ftens = [a.contiguous() for a in ftens]
+    n_rec = rows.shape[0] + int(tabs.record_base)
+    r, J, Y, rn, lam, tol = _start(N, n_rec, lam0, solver.tol, x.dtype, x.device)
     xf = x.reshape(N, 6).contiguous()
-    Z = initial_state(xf, bp, bq, solver.scales, lanes)
-    base = (compiled, lanes, shp, x.dtype, str(x.device), K, fkey, float(t), float(solver.fd_step))
-    make = lane_program if lanes else step_program
-    key_p = ("step", False, base, _sig((Z, rowl[0])))
-    key_m = ("step", True, base, _sig((Z, rowl[0], *rest)))
-    if key_p in _FAILED or key_m in _FAILED:
-        return None
-    try:
-        plain = _program(key_p, lambda: make(False, shp, rebuild, t, solver.fd_step), [Z, rowl[0]], compiled)
-        mag = _program(key_m, lambda: make(True, shp, rebuild, t, solver.fd_step), [Z, rowl[0], *rest], compiled) \
-            if any(tabs.magnet_rows) else None
-    except Exception as e:  # an untraceable field hook: fall back (once per key)
-        import warnings
-        warnings.warn(f"Cosserat fast path unavailable ({type(e).__name__}: {e}); using torch.compile", stacklevel=3)
-        _FAILED.update((key_p, key_m))
-        return None
-    kw = dict(dtype=x.dtype, device=x.device)
-    n_rec = nr + int(tabs.record_base)
-    r, J = torch.zeros(N, 6, **kw), torch.eye(6, **kw).expand(N, 6, 6).contiguous()
-    Y, rn = torch.zeros(N, n_rec, 13, **kw), torch.full((N,), math.inf, **kw)
-    lam = torch.full((N,), lam0, **kw)
     itf, livef = its.reshape(N).contiguous(), live.reshape(N).contiguous()
-    act, budget = livef.clone(), itf + solver.max_iter
-    tol = torch.tensor(solver.tol, **kw)
-    xt = xf.clone()
-    prog = [mag if m else plain for m in tabs.magnet_rows]
-    first = True
-    lm = None
-    while True:
-        Zs = []
-        for p, row, m in zip(prog, rowl, tabs.magnet_rows):
-            Z = p(Z, row, *rest) if m else p(Z, row)
-            Zs.append(Z)
-        args = [xf, r, J, Y, rn, lam, act, xt, itf, budget, tol, livef, bp, bq, *Zs]
-        if lm is None:
-            key_l = ("lm", compiled, lanes, tabs.record_base, solver.scales, _sig(args))
+    # (no input passed twice: a trace would tie the two)
+    lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, itf + solver.max_iter, tol, livef, bp, bq]
+    nr = rows.shape[0]
+    key = (compiled, lanes, tabs.magnet_rows, tabs.record_base, solver.scales, fkey, float(t), float(solver.fd_step),
+           x.dtype, str(x.device), shp, tuple(rows.shape), _sig((bp, bq, *rest)), its.dtype)
+    if key in _FAILED:
+        return None
+    chain = _CHAINS.get(key)
+    if chain is None:
+        try:
             with _spd_unrolled():  # (eagerly: LAPACK)
-                lm = _program(key_l, lambda: lm_program(lanes, solver.scales, tabs.record_base), args, compiled)
-        xf, r, J, Y, rn, lam, itf, act, xt, Z = lm(*args)
+                chain = _build_chain(solver, lanes, tabs, shp, fkey, rebuild, t, rows, lm_args, rest + ftens, compiled)
+        except Exception as e:  # an untraceable field hook: fall back (once per key)
+            import warnings
+            warnings.warn(f"Cosserat fast path unavailable ({type(e).__name__}: {e}); using torch.compile",
+                          stacklevel=3)
+            _FAILED.add(key)
+            return None
+        _CHAINS[key] = chain
+    chunks = [(prog, rows[a:b]) for prog, a, b in chain] if len(chain) > 1 else [(chain[0][0], rows)]
+    first = True
+    while True:
+        carry, ys = _EMPTY, []
+        for prog, rows_k in chunks[:-1]:
+            carry, Yc = prog(carry, rows_k, *lm_args, *rest, *ftens)
+            ys.append(Yc)
+        prog, rows_k = chunks[-1]
+        xf, r, J, Y, rn, lam, itf, act, xt = prog(carry, rows_k, *lm_args, *rest, *ftens, *ys)
         if first:  # the evaluation at the start point is not an iteration
             itf, first = itf - livef.to(itf.dtype), False
         if not bool(act.any()):
             break
+        lm_args[:9] = xf, r, J, Y, rn, lam, act, xt, itf
     return (xf.reshape(*shp, 6), r.reshape(*shp, 6), J.reshape(*shp, 6, 6), Y.reshape(*shp, n_rec, 13),
             rn.reshape(shp), itf.reshape(shp))
+
+
+def _build_chain(solver, lanes: bool, tabs, shp, fkey, rebuild, t: float, rows: Tensor, lm_args: list, rest: list,
+                 compiled: bool) -> list:
+    """The programs of one LM iteration, ``[(program, first row, end row), ...]`` (see :func:`shot_program`),
+    each compiled for the inputs the stretch before it really produces (one dry shot)."""
+    nr = rows.shape[0]
+    n_chunks = -(-nr // (MAX_ROWS if lanes else 1))
+    cuts = [round(k * nr / n_chunks) for k in range(n_chunks + 1)]
+    chain, carry, ys = [], _EMPTY, []
+    for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
+        start, n_prev = k == 0, (k if k == n_chunks - 1 else None)
+        mags = tabs.magnet_rows[a:b]
+        args = [carry, rows[a:b], *lm_args, *rest, *(ys if n_prev else ())]
+        key = (compiled, lanes, shp, mags, start, n_prev, tabs.record_base, solver.scales, fkey, float(t),
+               float(solver.fd_step), _sig(args))
+        prog = _program(key, lambda: shot_program(lanes, mags, shp, rebuild, t, solver.fd_step, solver.scales,
+                                                  tabs.record_base, start, n_prev), args, compiled)
+        chain.append((prog, a, b))
+        if n_prev is None:
+            carry, Yc = prog(*args)
+            ys.append(Yc)
+    return chain
+
+
+_CHAINS: dict = {}
 
 
 def _program(key, make, inputs, compiled: bool):

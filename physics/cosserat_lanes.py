@@ -88,14 +88,15 @@ class LaneTables(NamedTuple):
     """Per-row tables of one solve (a row is a grid step; a zero-length first row carries the base
     node's point loads when there are any): ``step`` (..., S, 13) = h, K_s^-1, K_b^-1, v_hat, u_hat;
     ``loads`` (..., S, 12) = distributed force and moment, point force and moment at the row's end
-    node; ``flags`` (S, K) which magnets sit at that node; ``record_base`` whether the base state is
-    recorded before the first row (no zero-length row)."""
+    node; ``flags`` (S, K) which magnets sit at that node, and ``magnet_rows`` the same as a tuple
+    of magnet indices per row; ``record_base`` whether the base state is recorded before the first
+    row (no zero-length row)."""
 
     step: Tensor
     loads: Tensor
     flags: Tensor
     record_base: bool
-    magnet_rows: tuple[bool, ...]
+    magnet_rows: tuple[tuple[int, ...], ...]
 
 
 
@@ -142,7 +143,8 @@ def _static(grid: CosseratGrid, dtype, device):
             flags[list(grid.magnet_nodes), list(range(K))] = 1.0
         base = bool(flags[0].any()) or bool((A[0] != 0).any())
         fl = flags if base else flags[1:]
-        _STATIC[key] = (A, fl, base, tuple(bool(r.any()) for r in fl))
+        mags = tuple(tuple(k for k in range(K) if bool(r[k])) for r in fl)
+        _STATIC[key] = (A, fl, base, mags)
     return _STATIC[key]
 
 

@@ -47,7 +47,7 @@ from torch import Tensor
 
 from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape
 from .cosserat_ode import quat_matrix, shoot
-from .cosserat_fast import fast_lm
+from .cosserat_fast import fast_lm, flatten_field
 from .cosserat_lanes import lane_chunk, lane_step, lane_tables, shoot_lanes, step_table
 from .errors import SolverError
 from .loads import UniformField
@@ -129,12 +129,12 @@ class CosseratSolver:
     """Shooting solver for one :class:`~physics.cosserat.CosseratRod` (see the module docstring).
 
     ``tol`` (default 1e-10 in float64, 1e-4 in float32) bounds the scaled tip residual;
-    ``compile=True`` runs the shots through :mod:`physics.cosserat_fast`: per batch shape, a compiled RK4
-    step with its tangents (one fused loop; steps without magnets run a program without the field),
-    and a compiled LM update, called through a thin wrapper (a few us a call); batches of 8 or more
-    run in a component-major layout vectorised over the problems, smaller ones on six lanes. The
-    first solve per batch shape, dtype and field kind compiles (tens of seconds to a few minutes
-    here; inductor caches it on disk). A field hook that cannot be traced (a plain function, a time
+    ``compile=True`` runs the solve through :mod:`physics.cosserat_fast`: per batch shape, a compiled
+    program per LM iteration (the shot with its tangents and the update; batches of 8 or more run
+    one program per RK4 step in a component-major layout vectorised over the problems, smaller
+    ones the whole iteration on six lanes), called through a thin wrapper (a few us a call). The
+    first solve per batch shape, dtype and field kind compiles (a few minutes here, ten or more for
+    a batch; inductor caches it on disk). A field hook that cannot be traced (a plain function, a time
     function inside) takes the older path of :mod:`physics.cosserat_lanes` (``torch.compile`` d step
     per grid step), as does ``steps_per_call > 1`` (that many steps fused per call).
     """
@@ -171,6 +171,8 @@ class CosseratSolver:
         self.steps_per_call = int(steps_per_call)
         self._math, step1, chunk = _compiled() if compile else (_lm_math, lane_step, lane_chunk)
         self._lane_step = step1 if self.steps_per_call == 1 else chunk
+        self._loads_cache: dict = {}
+        self._field_shapes: dict = {}
 
     # ------------------------------------------------------------------ inputs
     def make_loads(self, *, gravity=None, point_forces=None, point_torques=None, tip_force=None, tip_moment=None,
@@ -218,14 +220,14 @@ class CosseratSolver:
         cols, (r, Y) = torch.func.vmap(lambda v: torch.func.jvp(r_of, (x,), (v,), has_aux=True)[1:])(basis)
         return r[0], cols.movedim(0, -1), Y[0]
 
-    def _lm(self, x, prm, loads, field, t, its, lam0, live):
+    def _lm(self, x, prm, loads, field, t, its, lam0, live, flat=None):
         """LM from ``x`` (batch-shaped); returns x, r, J, Y, rn and the updated iteration counts."""
         evaluate = self._evaluate
         if self.compile:
             if self._step_key is not prm:  # the parameter table is reused while params are unchanged
                 self._step_key, self._step_tab = prm, step_table(prm, self.rod.grid)
             if self.steps_per_call == 1:
-                out = fast_lm(self, x, prm, loads, field, t, its, lam0, live, self._step_tab)
+                out = fast_lm(self, x, prm, loads, field, t, its, lam0, live, self._step_tab, flat=flat)
                 if out is not None:
                     return out
             tabs = lane_tables(prm, self.rod.grid, loads, self._step_tab)
@@ -265,7 +267,7 @@ class CosseratSolver:
         whenever an input requires grad) adds the implicit-function correction that makes the result
         differentiable."""
         loads = load_kw.pop("loads", None)
-        loads = self.make_loads(**load_kw) if loads is None else loads
+        loads = self._loads(load_kw) if loads is None else loads
         if field is not None and not callable(field) and not hasattr(field, "wrench"):
             raise TypeError("field must be callable as field(t, positions) -> B | (B, dB) or have "
                             "wrench(t, positions, moments)")
@@ -285,8 +287,9 @@ class CosseratSolver:
                                            loads.base_position, loads.base_quaternion, x0)]
         shapes += [loads.point_force.shape[:-2], loads.point_torque.shape[:-2], loads.field_scale.shape,
                    prm.ks_inv.shape[:-2], prm.magnet_moment.shape[:-2]]
+        flat = flatten_field(field) if self.compile else None
         if field is not None and self.rod.magnets:
-            shapes.append(self._field_batch(field, t, loads))
+            shapes.append(self._field_batch(field, t, loads, flat))
         shp = broadcast_shape(*shapes)
         x0 = x0.detach().expand(*shp, 6).clone()
         its = torch.zeros(shp, dtype=torch.long, device=self.device)
@@ -298,7 +301,7 @@ class CosseratSolver:
             for k in range(1, steps + 1):
                 lk = loads_d if k == steps else loads_d.scaled(k / steps)
                 x, r, J, Y, rn, its = self._lm(x, prm_d, lk, field, t, its,
-                                               _LAM_COLD if (init is None and k == 1) else _LAM_WARM, live)
+                                               _LAM_COLD if (init is None and k == 1) else _LAM_WARM, live, flat)
             return x, r, J, Y, rn, its
 
         with torch.no_grad():
@@ -325,18 +328,42 @@ class CosseratSolver:
             Y, x = self._implicit(x, J, prm, loads, field, t)
         return StaticSolution(self._s, Y, x * sc, converged, its, rn, J)
 
-    def _field_batch(self, field, t, loads) -> tuple[int, ...]:
-        """Batch shape of the field's output (probed once at the base position)."""
+    def _loads(self, kw: dict) -> StaticLoads:
+        """:meth:`make_loads` of ``kw``, cached per solver when every value is a number, a sequence of
+        numbers or ``None`` (a control loop re-solving for new fields then builds its loads once; the
+        solver never writes to them)."""
+        try:
+            key = tuple(sorted((k, _frozen(v)) for k, v in kw.items()))
+        except TypeError:  # tensors and other objects: no caching
+            return self.make_loads(**kw)
+        loads = self._loads_cache.get(key)
+        if loads is None:
+            loads = self.make_loads(**kw)
+            if len(self._loads_cache) >= 64:
+                self._loads_cache.clear()
+            self._loads_cache[key] = loads
+        return loads
+
+    def _field_batch(self, field, t, loads, flat=None) -> tuple[int, ...]:
+        """Batch shape of the field's output (probed once at the base position; for a field that the
+        compiled path can trace, once per field structure, since its shapes cannot depend on values)."""
         pos = loads.base_position.detach().unsqueeze(-2)
         B = getattr(field, "B", None)
         if isinstance(field, UniformField) and isinstance(B, Tensor):  # B (..., 1, 3) for a batch
             return B.shape[:-2]
+        key = None if flat is None else (flat[0], tuple(pos.shape), float(t))
+        if key is not None and key in self._field_shapes:
+            return self._field_shapes[key]
         with torch.no_grad():
             if callable(field):
                 out = field(t, pos)
                 B = out[0] if isinstance(out, tuple) else out
             else:
                 B = field.wrench(t, pos, torch.ones_like(pos))[1]
+        if key is not None:
+            if len(self._field_shapes) >= 64:
+                self._field_shapes.clear()
+            self._field_shapes[key] = B.shape[:-2]
         return B.shape[:-2]
 
     def _implicit(self, x, J, prm, loads, field, t):
@@ -420,6 +447,16 @@ def _spd_unrolled():
         yield
     finally:
         _UNROLLED[0] = False
+
+
+def _frozen(v):
+    """``v`` as a hashable key when it is a number, a (nested) sequence of numbers or ``None``; else
+    ``TypeError``."""
+    if v is None or isinstance(v, (bool, int, float)):
+        return v
+    if isinstance(v, (tuple, list)):
+        return tuple(_frozen(a) for a in v)
+    raise TypeError(type(v).__name__)
 
 
 def _cat_tip(pts: Tensor, tip: Tensor) -> list[Tensor]:

@@ -165,12 +165,14 @@ def test_fast_path_programs_match_the_reference_shooting(monkeypatch):
     near = sc.solve(solver, field=LinearField(B * 0.99, Gm))
     ref = sc.solve(solver, field=LinearField(B, Gm), init=near)
 
-    def fast(self, x, prm, loads, field, t, its, lam0, live):
-        return fast_lm(self, x, prm, loads, field, t, its, lam0, live, step_table(prm, self.rod.grid), compiled=False)
+    def fast(self, x, prm, loads, field, t, its, lam0, live, flat=None):
+        return fast_lm(self, x, prm, loads, field, t, its, lam0, live, step_table(prm, self.rod.grid), compiled=False,
+                       flat=flat)
 
     monkeypatch.setattr(CosseratSolver, "_lm", fast)
-    for lanes_below in (1, 8):  # component layout, then lanes
+    for lanes_below, max_rows in ((1, 16), (8, 16), (8, 5)):  # component layout, lanes, the shot in 3 programs
         monkeypatch.setattr(cosserat_fast, "LANES_BELOW", lanes_below)
+        monkeypatch.setattr(cosserat_fast, "MAX_ROWS", max_rows)
         out = sc.solve(solver, field=LinearField(B, Gm), init=near)
         assert out.iterations.tolist() == ref.iterations.tolist() and bool(out.converged.all())
         assert (out.y - ref.y).abs().max() < 1e-14 and (out.jacobian - ref.jacobian).abs().max() < 1e-12

@@ -10,18 +10,13 @@ depend on the solved pose. Solved (a) warm-started from the solution at a neighb
 Peer: the same model (equations, grid, magnets, scaling) as numpy fixed-step RK4 and
 ``scipy.optimize.least_squares(method='lm')`` (MINPACK, finite-difference Jacobian), written here.
 
-Where the time goes (compiled path, 1 thread, float64, measured with cProfile in this set-up; see
-physics.cosserat_fast). A warm solve is 3 LM iterations = 4 shots of 12 RK4-step calls plus 4 LM-update
-calls. At batch 1 (six tangent lanes) a step without magnets costs about 14 us of kernel plus a few us
-of call overhead (the torch.compile wrapper of the earlier path cost about 30 us a call, now bypassed),
-but the two steps that end at a magnet cost about 65 us each (the field hook's vector code splits
-into ~40 loops in inductor's kernel): about 2.7 ms a solve, i.e. ~360 Hz. The 1000 Hz target needs
-<= ~20 us per step all included; it is out of reach with one kernel call per grid step unless the
-magnet steps get as cheap as the others (a magnet-specific field kernel) or several steps are fused
-per call without the multi-minute compiles that caused. At batch 1024 the step without magnets is
-vectorised over the problems (0.66 ms for 1024 problems), but the magnet step (4.8 ms) and the LM update
-(4.3 ms, transposing layouts) take ~60 % of a batched solve: ~13,000 solves/s against the 20,000
-target. The >= 10x speed-up over the scipy peer and the tip agreement are met.
+Where the time goes (compiled path, 1 thread, float64; see physics.cosserat_fast). A warm solve is 3 LM
+iterations = 4 shots. At batch 1 each LM iteration (the 12 RK4 steps with six tangent lanes, the two
+magnet wrenches, the update) is one compiled program: about 180 us of kernel and a few us of call,
+plus about 100 us of Python per solve (loads, tables, the loop), i.e. about 0.8 ms a solve. With one
+program per step (52 calls of 7-36 us of kernel plus 5-10 us of call each) and the loads rebuilt on
+every solve, the same solve took 1.3-1.7 ms. At batch 1024 each step is its own program vectorised
+over the problems (a fused shot compiled for more than ten minutes).
 
 Prints human-readable lines and, last, one JSON line. ``--quick`` shortens the timing windows and
 the peer's batch check; ``--no-compile`` times the eager path only (a first compile takes about a
