@@ -37,8 +37,9 @@ from torch import Tensor
 
 from .cosserat_lanes import end_of_step, rk4_tangent_step
 from .cosserat_ode import _field_wrench
+from .programs import compile_program
 
-__all__ = ["NZ", "step_program", "flatten_field", "compile_program"]
+__all__ = ["NZ", "step_program", "flatten_field", "fast_lm"]
 
 NZ = 13 * 7  # primal + six tangents
 
@@ -353,14 +354,6 @@ def flatten_field(field):
 
 class _Unsupported(Exception):
     pass
-
-
-def compile_program(fn, inputs: list[Tensor]):
-    """``make_fx`` (fake tensors) + ``torch._inductor.compile`` of ``fn(*inputs)`` for these shapes."""
-    from torch.fx.experimental.proxy_tensor import make_fx
-    with torch.no_grad():
-        gm = make_fx(fn, tracing_mode="fake")(*inputs)
-        return torch._inductor.compile(gm, list(inputs), options={"max_fusion_size": 100000, "cpp_wrapper": True})
 
 
 # ----------------------------------------------------------------------------------------- the driver

@@ -87,6 +87,8 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     hist = rolled[:1].expand(3, -1, -1)[None]
     direct = model.rollout(hist, W[None], rolled[:1])[0]
     assert torch.allclose(rolled[1:], direct, atol=1e-6)
+    compiled, _ = engine.compile().run_scene(scene)  # the ahead-of-time compiled step (one compile)
+    assert torch.allclose(compiled, rolled, atol=1e-6) and not torch.equal(rolled[1:], rolled[:1].expand(10, -1, -1))
     frozen = model(hist, W[:1][None].squeeze(0), rolled[:1])  # the engine froze Input Layer I into a matrix
     model.unfreeze_features()
     assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1]), frozen, atol=1e-7)

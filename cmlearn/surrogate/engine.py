@@ -3,8 +3,10 @@
     engine = Surrogate.load("checkpoints/semicircle.pt")
     positions, wall = engine.run_scene(engine.task.scene_by_name("semicircle_heldout"))
 
-``step(hist, wrench)`` is the batch-1 step a controller calls; ``compile()`` swaps in a
-``torch.compile``d step (optional; its compile time is not part of any step latency figure).
+``step(hist, wrench)`` is the batch-1 step a controller calls; ``compile()`` swaps in a step
+compiled ahead of time per input shape (:func:`physics.programs.compile_program`: the LSTM
+decomposed into matrix products and fused gates, a few us of call overhead; its compile time, a
+few seconds, is not part of any step latency figure).
 """
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ import torch
 from torch import Tensor
 
 from cmlearn.data.tasks import SurrogateTask, get_task
+from physics.programs import compile_program
 from cmlearn.data.windows import node_wrench
 
 from .checkpoint import CheckpointError, load_checkpoint
@@ -48,8 +51,20 @@ class Surrogate:
         forces (B, K, 3) and the reference (initial) shape (B, n_tracked, 3)."""
         return self._step(hist, wrench, ref)
 
-    def compile(self, **kw) -> "Surrogate":
-        self._step = torch.compile(self.model, dynamic=False, **kw)
+    def compile(self) -> "Surrogate":
+        """Run :meth:`step` through programs compiled for each new input shape (same results to float
+        round-off; ``torch.compile`` of the step did not help: the LSTM stays one opaque call)."""
+        programs: dict = {}
+        model = self.model
+
+        def step(hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
+            key = tuple((tuple(a.shape), a.stride(), a.dtype) for a in (hist, wrench, ref))
+            prog = programs.get(key)
+            if prog is None:
+                prog = programs[key] = compile_program(model, [hist, wrench, ref])
+            return prog(hist, wrench, ref)
+
+        self._step = step
         return self
 
     def scene_wrench(self, scene, n_steps: int) -> Tensor:
