@@ -131,36 +131,65 @@ class NodeLSTMSurrogate(nn.Module):
 
     @torch.no_grad()
     def freeze_features(self) -> "NodeLSTMSurrogate":
-        """Inference speed-up: Input Layer I is linear in (history, reference), so precompute it as one
-        matrix (built by applying :meth:`features` to the unit basis). Call again after changing the
-        scales; :meth:`unfreeze_features` (or ``train()``) returns to the explicit computation."""
-        W, N = self.config.eta + 1, self.config.n_tracked
+        """Inference speed-up. Input Layer I is linear in (history, reference), and node ``k``'s features
+        depend only on its own and its two neighbours' positions: precompute, per node, the matrix
+        from those ``(eta + 2) * 9`` numbers to its ``(eta + 1) * 18`` features (built by applying
+        :meth:`features` to the unit basis). Call again after changing the scales;
+        :meth:`unfreeze_features` (or ``train()``) returns to the explicit computation."""
+        W, N, K = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel()
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
-        self._feature_matrix = self.features(basis[:, :W], basis[:, W]).reshape(D, -1)
+        dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * N_FEATURES)
+        nodes = torch.stack([self.idx_left, self.idx_modeled, self.idx_right], -1)  # (K, 3)
+        frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
+        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3, 3)
+        rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
+        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * N_FEATURES))
+        first = torch.ones_like(rows, dtype=torch.bool)  # a neighbour that is the node itself (free end) counts once
+        for i in range(1, rows.shape[1]):
+            first[:, i] = (rows[:, :i] != rows[:, i:i + 1]).all(1)
+        blocks = blocks * first.unsqueeze(-1)
+        kept = torch.zeros(K, D, dtype=torch.bool, device=rows.device).scatter_(1, rows, True)
+        if bool(dense.transpose(0, 1)[~kept].any()):
+            raise RuntimeError("Input Layer I reads beyond a node's neighbours; freeze_features cannot split it")
+        self._feature_rows, self._feature_blocks = rows, blocks
         return self
 
     def unfreeze_features(self) -> None:
-        self._feature_matrix = None
+        self._feature_rows = self._feature_blocks = None
 
     def train(self, mode: bool = True):
         if mode:
-            self._feature_matrix = None
+            self.unfreeze_features()
         return super().train(mode)
 
-    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
+    def _lstm_last(self, f: Tensor) -> Tensor:
+        """The LSTM's last output for (S, W, 18) from the zero state, as its gate equations (the first
+        recurrent product vanishes): for compiled programs, where it beats the decomposed ``nn.LSTM``."""
+        lstm = self.lstm
+        gx = f @ lstm.weight_ih_l0.t() + (lstm.bias_ih_l0 + lstm.bias_hh_l0)
+        h = c = None
+        for t in range(f.shape[1]):
+            g = gx[:, t] if h is None else gx[:, t] + h @ lstm.weight_hh_l0.t()
+            i, fg, gg, o = g.chunk(4, -1)
+            i, gg, o = i.sigmoid(), gg.tanh(), o.sigmoid()
+            c = i * gg if c is None else fg.sigmoid() * c + i * gg
+            h = o * c.tanh()
+        return h
+
+    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor, unrolled_lstm: bool = False) -> Tensor:
         """One surrogate step: history (B, eta+1, n_tracked, 3), node forces (B, K, 3) and the reference
-        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3)."""
+        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3). ``unrolled_lstm``: the
+        LSTM as its gate equations (the same function; faster once compiled, slower eagerly)."""
         B, W = hist.shape[:2]
         K = self.idx_modeled.numel()
-        M = getattr(self, "_feature_matrix", None)
-        if M is not None:
-            f = (torch.cat([hist, ref[:, None]], 1).reshape(B, -1) @ M).reshape(B, K, W, N_FEATURES)
-            f = f.reshape(B * K, W, N_FEATURES)
+        rows = getattr(self, "_feature_rows", None)
+        if rows is not None:
+            x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)[:, rows]  # (B, K, (W+1) * 9)
+            f = torch.einsum("bki,kio->bko", x, self._feature_blocks).reshape(B * K, W, N_FEATURES)
         else:
             f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
-        out, _ = self.lstm(f)
-        h = out[:, -1].reshape(B, K, -1)
+        h = (self._lstm_last(f) if unrolled_lstm else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
         a = self.head(torch.cat([h, wf, emb], -1)) * self.a_scale
