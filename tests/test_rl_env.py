@@ -118,12 +118,28 @@ def test_max_steps_truncates_with_negative_reward():
 def test_disturbance_and_switching_controller_recapture():
     env = make([open_square()], disturbance=DisturbanceConfig(at_steps=(1,), magnitude=(0.11, 0.12), min_step=0))
     env.reset(seed=1, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
+    # camera images that tell the grid nodes apart (all bright enough for the obstacle rule)
+    env.atlas.view = lambda x, y: np.full((84, 84), 150 + sum(env.map.nearest_node(x, y)) % 100, np.uint8)
     obs, r, term, trunc, info = env.step(3)
     assert info["disturbances"] == 1 and info["sc1_steps"] > 0 and info["controller"] == 1
     assert info["reason"] == "running"
     assert math.dist(info["ee_xy"], info["particle_xy"]) < 0.02  # handed back after recapture
+    assert np.array_equal(obs[0], env.atlas.view(*env.ee))  # the camera where Sub-controller 1 left it
     traj = np.asarray(env.trajectory)
     assert (traj[:, 4] == 1).sum() == info["sc1_steps"] and (traj[:, 4] == 0).sum() == 1
+
+
+def test_switching_distance_decides_who_brings_a_dragged_particle_back():
+    """A particle dragged 7 cm: past the default 5 cm Sub-controller 1 recaptures it; under the
+    thesis's 10 cm nobody does (the magnet's pull alone acts on it while Sub-controller 2 goes on)."""
+    for switch, recaptured in ((None, True), (0.10, False)):
+        kw = {} if switch is None else {"switching": rl.SwitchingConfig(switch_distance=switch)}
+        env = make([open_square()], disturbance=DisturbanceConfig(at_steps=(1,), magnitude=(0.07, 0.07), min_step=0),
+                   **kw)
+        env.reset(seed=1, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
+        info = env.step(3)[-1]
+        assert info["disturbances"] == 1 and (info["sc1_steps"] > 0) == recaptured
+        assert (math.dist(info["ee_xy"], info["particle_xy"]) < 0.02) == recaptured
 
 
 def test_seeded_determinism():

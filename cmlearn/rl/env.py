@@ -11,7 +11,7 @@ Interface (thesis lines 700-735):
 * Actions ``Discrete(4)``: move the end-effector by ``action_step`` (1 cm) in +x, -x, +y, -y.
 * One step is one control period (``control_period`` = 0.1 s): IK for the new set-point, the
   particle simulated under the moving magnet (:mod:`cmlearn.rl.particle`), then disturbances and
-  the switching controller (:mod:`cmlearn.rl.switching`): when the particle is farther than 10 cm,
+  the switching controller (:mod:`cmlearn.rl.switching`): when the particle is farther than 5 cm,
   Sub-controller 1 runs (inside the same ``step``) until it is recaptured; those periods are
   counted in ``info["sc1_steps"]`` and recorded in ``env.trajectory`` but not in ``max_steps``.
 * Termination (reward ``reward_failure`` = -1): no IK solution (``"ik_failure"``), the particle
@@ -241,6 +241,7 @@ class MagneticParticleEnv(gym.Env):
             self._maybe_disturb()
             if self.law is not None and self.law(self.ee, self.sim.position) == 1:
                 self._recapture()
+                view = self.atlas.view(*self.ee)  # the observation shows where Sub-controller 1 left the camera
         if self.reason == "running" and math.dist(self.sim.position, self.goal_xy) < cfg.goal_radius:
             self.reason = "success"
         truncated = self.reason == "running" and self.steps >= cfg.max_steps
