@@ -147,7 +147,7 @@ def main(argv=None):
     os.replace(tmp_png, png)
     plt.close(fig)
     # ------------------------------------------------------------------ report
-    mode = "compiled (torch.compile, first compile excluded)" if args.compile else "eager"
+    mode = "compiled (inductor programs of physics.cosserat_fast, first compile excluded)" if args.compile else "eager"
     lines = [
         "# Cosserat BVP solve time (Figure II.13 reproduction)",
         "",
@@ -155,8 +155,8 @@ def main(argv=None):
         f"{'' if args.compile else ' --no-compile'}`: Paper II rod (`physics.scenes_cosserat`), known magnet "
         f"wrenches and gravity, CPU, {torch.get_num_threads()} thread(s), float64, {mode}; mean +- std of {reps} solves "
         f"per case (the thesis: 50). Thesis: 8.33-50 Hz (20-120 ms per solve). Longest first solve "
-        f"{t_compile:.1f} s (compiling, or loading inductor's on-disk cache; a cold compile takes about 80 s here, "
-        f"see `scripts/bench/cosserat.py`).",
+        f"{t_compile:.1f} s (compiling, or loading inductor's on-disk cache; a cold compile costs about 15 s per grid "
+        f"step here, see `physics/cosserat_fast.py`).",
         "",
         f"![Figure II.13 reproduction]({png.name})",
         "",
