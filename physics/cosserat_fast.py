@@ -359,7 +359,7 @@ class _Unsupported(Exception):
 # ----------------------------------------------------------------------------------------- the driver
 _PROGRAMS: dict = {}
 _FAILED: set = set()
-LANES_BELOW = 8  # batches smaller than this run on lanes (six tangents in one vector register)
+LANES_BELOW = 8  # batches smaller than this run on six lanes, a whole LM iteration per program
 MAX_ROWS = 16  # grid steps per program on lanes (a longer shot is split into near-equal stretches); one
 # step per program in the layout for batches (fused, those compile for many minutes)
 _EMPTY = torch.empty(0)

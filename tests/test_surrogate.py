@@ -90,7 +90,7 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     compiled, _ = engine.compile().run_scene(scene)  # the ahead-of-time compiled step (one compile)
     assert torch.allclose(compiled, rolled, atol=1e-6) and not torch.equal(rolled[1:], rolled[:1].expand(10, -1, -1))
     frozen = model(hist, W[:1][None].squeeze(0), rolled[:1])  # the engine froze Input Layer I into a matrix
-    assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1], unrolled_lstm=True), frozen, atol=1e-7)
+    assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1], program=True), frozen, atol=1e-7)
     model.unfreeze_features()
     assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1]), frozen, atol=1e-7)
     fr = free_running(model, torch.cat([rolled[:1].expand(2, -1, -1), rolled]), torch.cat([torch.zeros(2, *W.shape[1:]), W]), 2)

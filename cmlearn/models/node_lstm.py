@@ -131,11 +131,13 @@ class NodeLSTMSurrogate(nn.Module):
 
     @torch.no_grad()
     def freeze_features(self) -> "NodeLSTMSurrogate":
-        """Inference speed-up. Input Layer I is linear in (history, reference), and node ``k``'s features
-        depend only on its own and its two neighbours' positions: precompute, per node, the matrix
-        from those ``(eta + 2) * 9`` numbers to its ``(eta + 1) * 18`` features (built by applying
-        :meth:`features` to the unit basis). Call again after changing the scales;
-        :meth:`unfreeze_features` (or ``train()``) returns to the explicit computation."""
+        """Inference speed-up. Input Layer I is linear in (history, reference): precompute it as one
+        matrix (built by applying :meth:`features` to the unit basis) and, for compiled programs
+        (``forward(..., program=True)``), per node, since node ``k``'s features depend only on its own
+        and its two neighbours' positions: the matrix from those ``(eta + 2) * 9`` numbers to its
+        ``(eta + 1) * 18`` features (eagerly one matrix product is faster, compiled the blocks).
+        Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``) returns to
+        the explicit computation."""
         W, N, K = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel()
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
@@ -152,11 +154,11 @@ class NodeLSTMSurrogate(nn.Module):
         kept = torch.zeros(K, D, dtype=torch.bool, device=rows.device).scatter_(1, rows, True)
         if bool(dense.transpose(0, 1)[~kept].any()):
             raise RuntimeError("Input Layer I reads beyond a node's neighbours; freeze_features cannot split it")
-        self._feature_rows, self._feature_blocks = rows, blocks
+        self._feature_matrix, self._feature_rows, self._feature_blocks = dense.reshape(D, -1), rows, blocks
         return self
 
     def unfreeze_features(self) -> None:
-        self._feature_rows = self._feature_blocks = None
+        self._feature_matrix = self._feature_rows = self._feature_blocks = None
 
     def train(self, mode: bool = True):
         if mode:
@@ -177,19 +179,22 @@ class NodeLSTMSurrogate(nn.Module):
             h = o * c.tanh()
         return h
 
-    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor, unrolled_lstm: bool = False) -> Tensor:
+    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool = False) -> Tensor:
         """One surrogate step: history (B, eta+1, n_tracked, 3), node forces (B, K, 3) and the reference
-        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3). ``unrolled_lstm``: the
-        LSTM as its gate equations (the same function; faster once compiled, slower eagerly)."""
+        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3). ``program``: the same
+        function in the form that compiles best (frozen features per node, the LSTM as its gate
+        equations), slower eagerly."""
         B, W = hist.shape[:2]
         K = self.idx_modeled.numel()
-        rows = getattr(self, "_feature_rows", None)
-        if rows is not None:
-            x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)[:, rows]  # (B, K, (W+1) * 9)
+        M = getattr(self, "_feature_matrix", None)
+        if M is None:
+            f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
+        elif program:
+            x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)[:, self._feature_rows]  # (B, K, (W+1) * 9)
             f = torch.einsum("bki,kio->bko", x, self._feature_blocks).reshape(B * K, W, N_FEATURES)
         else:
-            f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
-        h = (self._lstm_last(f) if unrolled_lstm else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
+            f = (torch.cat([hist, ref[:, None]], 1).reshape(B, -1) @ M).reshape(B * K, W, N_FEATURES)
+        h = (self._lstm_last(f) if program else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
         a = self.head(torch.cat([h, wf, emb], -1)) * self.a_scale

@@ -52,9 +52,9 @@ class Surrogate:
         return self._step(hist, wrench, ref)
 
     def compile(self) -> "Surrogate":
-        """Run :meth:`step` through programs compiled for each new input shape, with the LSTM as its gate
-        equations (same results to float round-off; ``torch.compile`` of the step did not help: the
-        LSTM stays one opaque call)."""
+        """Run :meth:`step` through programs compiled for each new input shape, of the model's
+        ``program=True`` form (same results to float round-off; ``torch.compile`` of the step did not
+        help: the LSTM stays one opaque call)."""
         programs: dict = {}
         model = self.model
 
@@ -62,7 +62,7 @@ class Surrogate:
             key = tuple((tuple(a.shape), a.stride(), a.dtype) for a in (hist, wrench, ref))
             prog = programs.get(key)
             if prog is None:
-                prog = programs[key] = compile_program(lambda h, w, r: model(h, w, r, unrolled_lstm=True),
+                prog = programs[key] = compile_program(lambda h, w, r: model(h, w, r, program=True),
                                                        [hist, wrench, ref])
             return prog(hist, wrench, ref)
 
