@@ -439,7 +439,6 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     itf, livef = its.reshape(N).contiguous(), live.reshape(N).contiguous()
     # (no input passed twice: a trace would tie the two)
     lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, itf + solver.max_iter, tol, livef, bp, bq]
-    nr = rows.shape[0]
     key = (compiled, lanes, tabs.magnet_rows, tabs.record_base, solver.scales, fkey, float(t), float(solver.fd_step),
            x.dtype, str(x.device), shp, tuple(rows.shape), _sig((bp, bq, *rest)), its.dtype)
     if key in _FAILED:
@@ -456,7 +455,7 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
             _FAILED.add(key)
             return None
         _CHAINS[key] = chain
-    chunks = [(prog, rows[a:b]) for prog, a, b in chain] if len(chain) > 1 else [(chain[0][0], rows)]
+    chunks = [(prog, rows[a:b]) for prog, a, b in chain]
     first = True
     while True:
         carry, ys = _EMPTY, []
