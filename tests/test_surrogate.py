@@ -120,6 +120,30 @@ def test_small_training_run_reduces_the_loss(tiny):
     assert after < 0.8 * before
 
 
+def test_a_runaway_rollout_is_skipped_not_learned(tiny):
+    """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
+    skipped and counted, every weight stays finite and equal to before."""
+    L = pytest.importorskip("lightning")
+    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
+    torch.manual_seed(0)
+    task = get_task("semicircle")
+    dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=16)
+    model = tiny_model(task)
+    model.set_scales(dm.train_positions(), dm.wrench, 0.6)
+    module = SurrogateModule(model, horizon=4, warmup_epochs=1, lr=5e-3, max_epochs=1)
+    batch = next(iter(dm._loader("train", shuffle=False)))
+    hist = batch[0].clone()
+    hist[0, -1] = 1e38  # the rollout overflows to inf
+    before = [p.detach().clone() for p in model.parameters()]
+    trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0,
+                        limit_val_batches=0, gradient_clip_val=1.0)
+    poisoned = torch.utils.data.TensorDataset(hist, *batch[1:])
+    trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(poisoned, batch_size=len(hist)))
+    assert module.skipped_batches == 1
+    assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
+
+
 def test_checkpoint_round_trip_and_clear_errors(tmp_path):
     task = get_task("semicircle")
     model = tiny_model(task)

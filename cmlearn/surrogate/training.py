@@ -55,6 +55,7 @@ class SurrogateModule(L.LightningModule):
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
         self.save_hyperparameters(ignore=["model"])
+        self.skipped_batches = 0
 
     def current_horizon(self) -> int:
         frac = min(1.0, (self.current_epoch + 1) / max(1, self.warmup_epochs))
@@ -80,6 +81,10 @@ class SurrogateModule(L.LightningModule):
 
     def training_step(self, batch, batch_idx):
         loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon())
+        if not torch.isfinite(loss):  # a rollout that ran away: skip the batch rather than poison the weights
+            self.skipped_batches += 1
+            self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False)
+            return None
         self.log("train_loss", loss, prog_bar=True, on_epoch=True, on_step=False)
         self.log("horizon", float(self.current_horizon()), on_epoch=True, on_step=False)
         return loss
@@ -91,6 +96,15 @@ class SurrogateModule(L.LightningModule):
         mm = (pred[:, :, idx] - future[:, :self.horizon, idx]).abs().amax() * 1e3
         self.log("val_loss", loss, prog_bar=True)
         self.log("val_max_err_mm", mm, reduce_fx="max")
+
+    def on_before_optimizer_step(self, optimizer):
+        """A finite loss can still overflow in the backward pass: drop such a step's gradients (the
+        optimiser then leaves the weights as they are) instead of letting clipping spread the NaN."""
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        if grads and not all(torch.isfinite(g).all() for g in grads):
+            self.skipped_batches += 1
+            for p in self.model.parameters():
+                p.grad = None
 
     def configure_optimizers(self):
         opt = torch.optim.AdamW(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
