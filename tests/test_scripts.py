@@ -64,3 +64,14 @@ def test_bench_surrogate_quick(tmp_path):
 def test_surrogate_report(tmp_path):
     res = run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
     assert (tmp_path / "s.md").exists() and len(res["rows"]) >= 3
+
+
+def test_rollout_sensitivity_report_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_rollout_sensitivity.py"), "--quick", "--tasks", "semicircle",
+                      "--out", "sens.md"], tmp_path)
+    assert (tmp_path / "sens.md").exists()
+    cases = res["semicircle"]["cases"]
+    # a 10 um nudge of node 51 along x shows up in x, ten times the 1 um one (linear over 0.08 s)
+    x1, x10 = cases["nudge 1 um"]["x"]["max_mm"], cases["nudge 10 um"]["x"]["max_mm"]
+    assert 0 < x1 and abs(x10 / x1 - 10) < 0.5
+    assert cases["float32"]["x"]["max_mm"] < x1
