@@ -97,15 +97,19 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     assert torch.allclose(fr, rolled[1:], atol=1e-6)
 
 
-def test_small_training_run_reduces_the_loss(tiny):
-    L = pytest.importorskip("lightning")
+def tiny_training(tiny, max_epochs):
+    """Data module, model and Lightning module for a seeded horizon-4 run on the tiny data."""
     from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
     torch.manual_seed(0)
-    task = get_task("semicircle")
     dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=16)
-    model = tiny_model(task)
+    model = tiny_model(get_task("semicircle"))
     model.set_scales(dm.train_positions(), dm.wrench, 0.6)
-    module = SurrogateModule(model, horizon=4, warmup_epochs=1, lr=5e-3, max_epochs=20)
+    return dm, model, SurrogateModule(model, horizon=4, warmup_epochs=1, lr=5e-3, max_epochs=max_epochs)
+
+
+def test_small_training_run_reduces_the_loss(tiny):
+    L = pytest.importorskip("lightning")
+    dm, model, module = tiny_training(tiny, 20)
     batches = list(dm._loader("train", shuffle=False))
 
     def train_loss():
@@ -124,13 +128,7 @@ def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
     skipped and counted, every weight stays finite and equal to before."""
     L = pytest.importorskip("lightning")
-    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
-    torch.manual_seed(0)
-    task = get_task("semicircle")
-    dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=16)
-    model = tiny_model(task)
-    model.set_scales(dm.train_positions(), dm.wrench, 0.6)
-    module = SurrogateModule(model, horizon=4, warmup_epochs=1, lr=5e-3, max_epochs=1)
+    dm, model, module = tiny_training(tiny, 1)
     batch = next(iter(dm._loader("train", shuffle=False)))
     hist = batch[0].clone()
     hist[0, -1] = 1e38  # the rollout overflows to inf
