@@ -16,19 +16,9 @@ from pathlib import Path
 
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import surrogate_checkpoints
+from cmlearn.surrogate.evaluate import THESIS_ERRORS_MM as THESIS
 
 ROOT = Path(__file__).resolve().parents[1]
-
-# Paper II, max / mean absolute errors (mm) per axis
-THESIS = {
-    "ellipse": ((1.57, 0.27), (2.27, 0.46), (0.23, 0.06)),
-    "ellipse_horizontal": ((26.33, 3.37), (21.71, 3.70), (4.92, 4.22)),
-    "square_tracking": ((3.58, 1.70), (1.80, 0.69), (2.73, 1.41)),
-    "square_tracking_heldout": ((10.49, 2.61), (5.54, 1.05), (5.97, 2.83)),
-    "semicircle": ((1.36, 0.78), (0.23, 0.13), (2.22, 0.81)),
-    "semicircle_heldout": ((3.73, 1.25), (2.0, 0.2), (8.1, 1.2)),
-}
-
 
 # Table II.1: magnet orientation errors (deg), (max, mean) about x, y, z, against the experiment
 THESIS_ORIENTATION = {

@@ -17,7 +17,17 @@ from torch import Tensor
 
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-__all__ = ["one_step", "free_running", "evaluate", "interest_slots"]
+__all__ = ["one_step", "free_running", "evaluate", "interest_slots", "THESIS_ERRORS_MM"]
+
+# Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
+THESIS_ERRORS_MM = {
+    "ellipse": ((1.57, 0.27), (2.27, 0.46), (0.23, 0.06)),
+    "ellipse_horizontal": ((26.33, 3.37), (21.71, 3.70), (4.92, 4.22)),
+    "square_tracking": ((3.58, 1.70), (1.80, 0.69), (2.73, 1.41)),
+    "square_tracking_heldout": ((10.49, 2.61), (5.54, 1.05), (5.97, 2.83)),
+    "semicircle": ((1.36, 0.78), (0.23, 0.13), (2.22, 0.81)),
+    "semicircle_heldout": ((3.73, 1.25), (2.0, 0.2), (8.1, 1.2)),
+}
 
 
 def interest_slots(task, scene) -> list[int]:
