@@ -60,7 +60,6 @@ def sensitivity(task_name: str, quick: bool) -> dict:
     st, _ = sim.simulate(st, n_steps=n_cut, record_every=max(n_cut, 1))
     node = scene.nodes_of_interest[0]
     cases = perturbations(st.p, st.v, node)
-    names = ["exact"] + list(cases)
     batch = replace_state(st, torch.stack([st.p] + [c[0] for c in cases.values()]),
                           torch.stack([st.v] + [c[1] for c in cases.values()]))
     every = task.record_every(scene)
@@ -77,7 +76,7 @@ def sensitivity(task_name: str, quick: bool) -> dict:
             q = fine[::every // k]
             out["second_difference_max_mm"]["d" if k == 1 else f"d/{k}"] = float(
                 (q[2:] - 2 * q[1:-1] + q[:-2]).abs().max()) * 1e3
-    for b, name in enumerate(names[1:], start=1):
+    for b, name in enumerate(cases, start=1):  # batch row 0 is the exact run
         d = (traj[b] - traj[0]).abs() * 1e3
         out["cases"][name] = {ax: {"max_mm": float(d[:, i].max()), "mean_mm": float(d[:, i].mean())}
                               for i, ax in enumerate("xyz")}

@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from cmlearn.data.tasks import SurrogateTask, get_task
-from physics.programs import compile_program
 from cmlearn.data.windows import node_wrench
+from physics.programs import compile_program
 
 from .checkpoint import CheckpointError, load_checkpoint
 
