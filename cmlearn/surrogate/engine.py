@@ -63,7 +63,7 @@ class Surrogate:
             prog = programs.get(key)
             if prog is None:
                 prog = programs[key] = compile_program(lambda h, w, r: model(h, w, r, program=True),
-                                                       [hist, wrench, ref])
+                                                       [hist, wrench, ref], gemm_templates=True)
             return prog(hist, wrench, ref)
 
         self._step = step
