@@ -35,7 +35,7 @@ class Surrogate:
                 raise CheckpointError(f"checkpoint for task {meta['task']!r} has {key} = {meta[key]}, but the task "
                                       f"now defines {want}: retrain it with scripts/train_surrogate.py")
         model.freeze_features()
-        self._step = model
+        self._step = self._eager_step
 
     @classmethod
     def load(cls, path: str | Path, task: str | None = None) -> "Surrogate":
@@ -45,21 +45,26 @@ class Surrogate:
     def eta(self) -> int:
         return self.model.config.eta
 
-    @torch.no_grad()
     def step(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
         """Next positions (B, K, 3) of the modelled nodes from the history (B, eta+1, n_tracked, 3), the node
         forces (B, K, 3) and the reference (initial) shape (B, n_tracked, 3)."""
         return self._step(hist, wrench, ref)
 
+    @torch.no_grad()
+    def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
+        return self.model(hist, wrench, ref)
+
     def compile(self) -> "Surrogate":
         """Run :meth:`step` through programs compiled for each new input shape, of the model's
         ``program=True`` form (same results to float round-off; ``torch.compile`` of the step did not
-        help: the LSTM stays one opaque call)."""
+        help: the LSTM stays one opaque call). Programs track no gradients, so the step skips
+        ``no_grad`` (a microsecond a call)."""
         programs: dict = {}
         model = self.model
 
         def step(hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
-            key = tuple((tuple(a.shape), a.stride(), a.dtype) for a in (hist, wrench, ref))
+            key = (hist.shape, hist.stride(), hist.dtype, wrench.shape, wrench.stride(), wrench.dtype,
+                   ref.shape, ref.stride(), ref.dtype)
             prog = programs.get(key)
             if prog is None:
                 prog = programs[key] = compile_program(lambda h, w, r: model(h, w, r, program=True),
