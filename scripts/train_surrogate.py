@@ -44,6 +44,7 @@ class Args:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     noise: float = 0.0  # training-noise std on the history, in units of each node's step scale
+    step_weighting: str = "uniform"  # rollout-loss weights per step: uniform or inverse_square (1/h^2)
     patience: int = 15
     threads: int = 2
     data_dir: str = "data"
@@ -128,7 +129,8 @@ def main(argv=None):
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
-                             weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise)
+                             weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
+                             step_weighting=a.step_weighting)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger

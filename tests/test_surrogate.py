@@ -124,6 +124,25 @@ def test_small_training_run_reduces_the_loss(tiny):
     assert after < 0.8 * before
 
 
+def test_inverse_square_step_weighting_divides_each_steps_error_by_its_step(tiny):
+    from cmlearn.surrogate.training import SurrogateModule
+    dm, model, module = tiny_training(tiny, 1)
+    torch.manual_seed(1)
+    for prm in model.head[-1].parameters():  # a model that errs, so the rollout error grows along the horizon
+        prm.data.normal_(0, 0.1)
+    batch = next(iter(dm._loader("train", shuffle=False)))
+    with torch.no_grad():
+        uniform, pred = module.rollout_loss(batch, 4)
+        weighted, _ = module.rollout_loss(batch, 4, "inverse_square")
+    idx = model.idx_modeled
+    e2 = ((pred[:, :, idx] - batch[1][:, :4, idx]) / model.a_scale.mean()).pow(2).mean((0, 2, 3))  # per step
+    assert torch.allclose(uniform, e2.mean(), rtol=1e-5)
+    assert torch.allclose(weighted, (e2 / torch.tensor([1.0, 4.0, 9.0, 16.0])).mean(), rtol=1e-5)
+    assert weighted < 0.5 * uniform
+    with pytest.raises(ValueError, match="step_weighting"):
+        SurrogateModule(model, step_weighting="linear")
+
+
 def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
     skipped and counted, every weight stays finite and equal to before."""

@@ -48,10 +48,13 @@ class SurrogateDataModule(L.LightningDataModule):
 
 class SurrogateModule(L.LightningModule):
     def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
-                 weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0):
+                 weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0,
+                 step_weighting: str = "uniform"):
         super().__init__()
+        if step_weighting not in ("uniform", "inverse_square"):
+            raise ValueError(f"step_weighting must be 'uniform' or 'inverse_square', got {step_weighting!r}")
         self.model = model
-        self.noise = noise
+        self.noise, self.step_weighting = noise, step_weighting
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
         self.save_hyperparameters(ignore=["model"])
@@ -61,12 +64,18 @@ class SurrogateModule(L.LightningModule):
         frac = min(1.0, (self.current_epoch + 1) / max(1, self.warmup_epochs))
         return max(1, int(round(frac * self.horizon)))
 
-    def rollout_loss(self, batch, horizon: int):
+    def rollout_loss(self, batch, horizon: int, weighting: str = "uniform"):
+        """Mean squared rollout error over ``horizon`` steps. ``inverse_square`` divides the error at
+        step h by h: a bias in the predicted second difference grows as h^2 along a rollout, so
+        uniform weights let the last steps' drift dominate the loss and the fit of each single step
+        (what the rollout is made of) hardly counts; divided by h, every step weighs about alike."""
         hist, future, wrench, ref = batch
         m = self.model
         idx = m.idx_modeled
         pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon])
         err = (pred[:, :, idx] - future[:, :horizon, idx]) / m.a_scale.mean()
+        if weighting == "inverse_square":
+            err = err / torch.arange(1, horizon + 1, dtype=err.dtype, device=err.device)[:, None, None]
         return err.pow(2).mean(), pred
 
     def noisy(self, batch):
@@ -80,7 +89,7 @@ class SurrogateModule(L.LightningModule):
         return (hist.index_add(2, idx, walk), *batch[1:])
 
     def training_step(self, batch, batch_idx):
-        loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon())
+        loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon(), self.step_weighting)
         if not torch.isfinite(loss):  # a rollout that ran away: skip the batch rather than poison the weights
             self.skipped_batches += 1
             self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False)
