@@ -63,9 +63,11 @@ def rows(checkpoints):
     out = []
     for path in checkpoints:
         meta = json.loads(path.with_suffix(".json").read_text())
+        variant = "" if path.stem == meta["task"] else f" (`{path.name}`)"  # a second checkpoint of a task
         for case, m in meta["metrics"].items():
             th = thesis_for(meta["task"], case)
-            out.append({"task": meta["task"], "case": case if case != "seen_last40" else f"{meta['scene']} (last 40 %)",
+            label = case if case != "seen_last40" else f"{meta['scene']} (last 40 %)"
+            out.append({"task": meta["task"], "case": label + variant,
                         "thesis": " / ".join(f"{a}, {b}" for a, b in th) if th else "",
                         "one_step": fmt(m["one_step"]["node"]), "free_running": fmt(m["free_running"]["node"]),
                         "free_rmse_max_mm": m["free_running"]["rmse_max_mm"],
