@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from cmlearn.data.generate import scene_rollout
+from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.evaluate import interest_slots, one_step
@@ -53,7 +54,7 @@ def bias_table(path: str, window: int, duration: float | None) -> dict:
                              "d2_mean_mm": float(s[:, i].mean()), "d2_mean_abs_mm": float(s[:, i].abs().mean())}
                         for i, ax in enumerate("xyz")}})
     return {"checkpoint": str(path), "task": task.name, "scene": task.scene, "node": scene.nodes_of_interest[0],
-            "delta_s": task.delta, "window": window, "cut_frame": int(round(0.6 * n)), "rows": rows}
+            "delta_s": task.delta, "window": window, "cut_frame": split_ranges(1, n + 1)["test"][0][1], "rows": rows}
 
 
 def markdown(results: list[dict]) -> str:

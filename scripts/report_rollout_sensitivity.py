@@ -122,7 +122,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=Args.out)
     a = Args(**vars(ap.parse_args(argv)))
-    valid = ("ellipse", "semicircle", "square_tracking")
+    valid = Args().tasks
     unknown = [t for t in a.tasks if t not in valid]
     if unknown:
         raise SystemExit(f"--tasks: {unknown} not among the Paper II scenes {list(valid)}")
