@@ -45,6 +45,7 @@ class Args:
     weight_decay: float = 1e-4
     noise: float = 0.0  # training-noise std on the history, in units of each node's step scale
     step_weighting: str = "uniform"  # rollout-loss weights per step: uniform or inverse_square (1/h^2)
+    one_step_weight: float = 0.0  # weight of a teacher-forced one-step loss term beside the rollout loss
     patience: int = 15
     threads: int = 2
     data_dir: str = "data"
@@ -130,7 +131,7 @@ def main(argv=None):
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
-                             step_weighting=a.step_weighting)
+                             step_weighting=a.step_weighting, one_step_weight=a.one_step_weight)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger

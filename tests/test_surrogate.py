@@ -143,6 +143,28 @@ def test_inverse_square_step_weighting_divides_each_steps_error_by_its_step(tiny
         SurrogateModule(model, step_weighting="linear")
 
 
+def test_one_step_loss_predicts_every_frame_from_the_true_history(tiny):
+    from cmlearn.surrogate.training import SurrogateModule
+    dm, model, module = tiny_training(tiny, 1)
+    torch.manual_seed(2)
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    hist, future, wrench, ref = batch = next(iter(dm._loader("train", shuffle=False)))
+    idx, W = model.idx_modeled, hist.shape[1]
+    frames = torch.cat([hist, future], 1)
+    with torch.no_grad():
+        one = module.one_step_loss(batch, 3)
+        by_hand = torch.stack([(model(frames[:, h:h + W], wrench[:, h], ref) - future[:, h, idx]) / model.a_scale.mean()
+                               for h in range(3)], 1).pow(2).mean()
+        first, _ = module.rollout_loss(batch, 1)
+    assert torch.allclose(one, by_hand, rtol=1e-5)
+    assert torch.allclose(module.one_step_loss(batch, 1), first, rtol=1e-5)  # one step: the rollout loss itself
+    rolled, _ = module.rollout_loss(batch, 3)
+    assert one < rolled  # an erring model drifts: its rollout error exceeds its one-step error
+    with pytest.raises(ValueError, match="one_step_weight"):
+        SurrogateModule(model, one_step_weight=-1.0)
+
+
 def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
     skipped and counted, every weight stays finite and equal to before."""

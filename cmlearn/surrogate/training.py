@@ -49,12 +49,14 @@ class SurrogateDataModule(L.LightningDataModule):
 class SurrogateModule(L.LightningModule):
     def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
                  weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0,
-                 step_weighting: str = "uniform"):
+                 step_weighting: str = "uniform", one_step_weight: float = 0.0):
         super().__init__()
         if step_weighting not in ("uniform", "inverse_square"):
             raise ValueError(f"step_weighting must be 'uniform' or 'inverse_square', got {step_weighting!r}")
+        if not one_step_weight >= 0:
+            raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
         self.model = model
-        self.noise, self.step_weighting = noise, step_weighting
+        self.noise, self.step_weighting, self.one_step_weight = noise, step_weighting, one_step_weight
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
         self.save_hyperparameters(ignore=["model"])
@@ -78,6 +80,20 @@ class SurrogateModule(L.LightningModule):
             err = err / torch.arange(1, horizon + 1, dtype=err.dtype, device=err.device)[:, None, None]
         return err.pow(2).mean(), pred
 
+    def one_step_loss(self, batch, horizon: int):
+        """Mean squared one-step (teacher-forced) error over the window's first ``horizon`` frames: each
+        predicted from the true history, in the rollout loss's units."""
+        hist, future, wrench, ref = batch
+        m = self.model
+        W = hist.shape[1]
+        frames = torch.cat([hist, future[:, :horizon]], 1)
+        windows = frames.unfold(1, W, 1)[:, :horizon].movedim(-1, 2)  # (B, horizon, W, n_tracked, 3)
+        B = hist.shape[0]
+        pred = m(windows.reshape(B * horizon, *windows.shape[2:]), wrench[:, :horizon].reshape(B * horizon, *wrench.shape[2:]),
+                 ref.repeat_interleave(horizon, 0))
+        err = (pred.reshape(B, horizon, *pred.shape[1:]) - future[:, :horizon, m.idx_modeled]) / m.a_scale.mean()
+        return err.pow(2).mean()
+
     def noisy(self, batch):
         """Training noise: a random walk (std ``noise`` x the node's step scale per frame) added to the
         modelled nodes' history, so that the model learns to correct its own rollout errors."""
@@ -90,6 +106,8 @@ class SurrogateModule(L.LightningModule):
 
     def training_step(self, batch, batch_idx):
         loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon(), self.step_weighting)
+        if self.one_step_weight > 0:
+            loss = loss + self.one_step_weight * self.one_step_loss(batch, self.current_horizon())
         if not torch.isfinite(loss):  # a rollout that ran away: skip the batch rather than poison the weights
             self.skipped_batches += 1
             self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False)
