@@ -19,6 +19,7 @@ from cmlearn.surrogate import surrogate_checkpoints
 from cmlearn.surrogate.evaluate import THESIS_ERRORS_MM as THESIS
 
 ROOT = Path(__file__).resolve().parents[1]
+NOTES = "<!-- notes: hand-written below this line; scripts/report_surrogates.py keeps them -->"
 
 # Table II.1: magnet orientation errors (deg), (max, mean) about x, y, z, against the experiment
 THESIS_ORIENTATION = {
@@ -109,7 +110,11 @@ def main(argv=None):
                   "| profile | magnet | model | about x | about y | about z |", "|---|---|---|---|---|---|"] + orient
     lines += ["", "Training commands:", ""]
     lines += [f"- `{json.loads(c.with_suffix('.json').read_text())['command']}`" for c in cks]
-    write_text_atomic(a.out, "\n".join(lines) + "\n")
+    out = Path(a.out)
+    old = out.read_text() if out.exists() else ""
+    if NOTES in old:  # hand-written notes (studies, caveats) below the marker survive regeneration
+        lines += ["", NOTES + old.split(NOTES, 1)[1].rstrip("\n")]
+    write_text_atomic(out, "\n".join(lines) + "\n")
     print("\n".join(lines))
     print(json.dumps({"rows": table}))
 

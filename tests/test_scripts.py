@@ -64,6 +64,17 @@ def test_bench_surrogate_quick(tmp_path):
 def test_surrogate_report(tmp_path):
     res = run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
     assert (tmp_path / "s.md").exists() and len(res["rows"]) >= 3
+    import importlib.util  # hand-written notes below the marker survive a regeneration
+    spec = importlib.util.spec_from_file_location("report_surrogates", ROOT / "scripts/report_surrogates.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    NOTES = mod.NOTES
+    text = (tmp_path / "s.md").read_text()
+    assert NOTES not in text
+    (tmp_path / "s.md").write_text(text.replace("| scene |", "| stale |") + NOTES + "\nA study.\n")
+    run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
+    again = (tmp_path / "s.md").read_text()
+    assert again == text + "\n" + NOTES + "\nA study.\n"
 
 
 def test_rollout_sensitivity_report_quick(tmp_path):
