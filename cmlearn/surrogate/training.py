@@ -89,8 +89,7 @@ class SurrogateModule(L.LightningModule):
         frames = torch.cat([hist, future[:, :horizon]], 1)
         windows = frames.unfold(1, W, 1)[:, :horizon].movedim(-1, 2)  # (B, horizon, W, n_tracked, 3)
         B = hist.shape[0]
-        pred = m(windows.reshape(B * horizon, *windows.shape[2:]), wrench[:, :horizon].reshape(B * horizon, *wrench.shape[2:]),
-                 ref.repeat_interleave(horizon, 0))
+        pred = m(windows.flatten(0, 1), wrench[:, :horizon].flatten(0, 1), ref.repeat_interleave(horizon, 0))
         err = (pred.reshape(B, horizon, *pred.shape[1:]) - future[:, :horizon, m.idx_modeled]) / m.a_scale.mean()
         return err.pow(2).mean()
 
