@@ -77,7 +77,8 @@ def markdown(results: list[dict]) -> str:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoints", nargs="+", default=["checkpoints/semicircle.pt", "checkpoints/semicircle_fast.pt", "checkpoints/square_tracking.pt"])
+    ap.add_argument("--checkpoints", nargs="+", default=["checkpoints/semicircle.pt", "checkpoints/semicircle_fast.pt",
+                                                         "checkpoints/square_tracking.pt"])
     ap.add_argument("--window", type=int, default=20)
     ap.add_argument("--duration", type=float, default=0.0, help="shorter printed scene (s), for smoke runs")
     ap.add_argument("--out", default="docs/one_step_bias.md")

@@ -75,22 +75,24 @@ class SurrogateModule(L.LightningModule):
         m = self.model
         idx = m.idx_modeled
         pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon])
-        err = (pred[:, :, idx] - future[:, :horizon, idx]) / m.a_scale.mean()
+        err = self.scaled_error(pred[:, :, idx], future[:, :horizon, idx])
         if weighting == "inverse_square":
             err = err / torch.arange(1, horizon + 1, dtype=err.dtype, device=err.device)[:, None, None]
         return err.pow(2).mean(), pred
+
+    def scaled_error(self, pred, target):
+        """Position error in units of the mean second-difference scale (the losses' unit)."""
+        return (pred - target) / self.model.a_scale.mean()
 
     def one_step_loss(self, batch, horizon: int):
         """Mean squared one-step (teacher-forced) error over the window's first ``horizon`` frames: each
         predicted from the true history, in the rollout loss's units."""
         hist, future, wrench, ref = batch
         m = self.model
-        W = hist.shape[1]
         frames = torch.cat([hist, future[:, :horizon]], 1)
-        windows = frames.unfold(1, W, 1)[:, :horizon].movedim(-1, 2)  # (B, horizon, W, n_tracked, 3)
-        B = hist.shape[0]
+        windows = frames.unfold(1, hist.shape[1], 1)[:, :horizon].movedim(-1, 2)  # (B, horizon, W, n_tracked, 3)
         pred = m(windows.flatten(0, 1), wrench[:, :horizon].flatten(0, 1), ref.repeat_interleave(horizon, 0))
-        err = (pred.reshape(B, horizon, *pred.shape[1:]) - future[:, :horizon, m.idx_modeled]) / m.a_scale.mean()
+        err = self.scaled_error(pred.unflatten(0, (hist.shape[0], horizon)), future[:, :horizon, m.idx_modeled])
         return err.pow(2).mean()
 
     def noisy(self, batch):
