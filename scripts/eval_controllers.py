@@ -2,7 +2,8 @@
 
 For each controller (``iqn``: the trained Rainbow-IQN agent of ``--agent`` inside its
 :class:`~cmlearn.rl.agent.ActingGuard`, ``iqn_greedy``: the same, plain greedy, ``attractor``, ``errt``,
-``random``, ``teacher``: the privileged map-reading teacher of :mod:`cmlearn.rl.teacher`) and each setting (undisturbed /
+``memory``: the explored-map planner of :mod:`cmlearn.planning.memory`, ``random``, ``teacher``: the
+privileged map-reading teacher of :mod:`cmlearn.rl.teacher`) and each setting (undisturbed /
 disturbed x training maps / unseen maps) it runs ``--episodes`` seeded episodes with random
 start and goal (the same seeds for every controller) and reports: success rate with its 95 %
 Wilson interval, mean decisions (Sub-controller 2 steps) and Sub-controller 1 steps, particle path
@@ -10,9 +11,13 @@ length (successful episodes), tracking error |particle - end-effector| per axis 
 episode maximum, averaged over episodes, as the thesis), compute time per decision, and the
 failure reasons. Saves trajectory plots like Figures 4.9-4.13 and a markdown table; prints one
 JSON line last. ``--switch-distance`` sets the switching law's threshold (default 5 cm, the
-thesis's 10 cm with 0.10; see :mod:`cmlearn.rl.switching`).
+thesis's 10 cm with 0.10; see :mod:`cmlearn.rl.switching`). The ``iqn`` controllers run in the
+environment their agent was trained in: with the map-memory waypoint in the goal marker when its
+``train_config.waypoint_lookahead`` is > 0 (``--agent-waypoints N`` overrides, 0 = the goal); the
+planner's memory then starts from a camera sweep of each training map (the maps the robot has
+swept before; ``--no-sweep`` starts it empty there too) and empty on the unseen maps.
 
-    python scripts/eval_controllers.py [--quick] [--episodes 200] [--controllers iqn,attractor,errt]
+    python scripts/eval_controllers.py [--quick] [--episodes 200] [--controllers iqn,attractor,errt,memory]
 """
 from __future__ import annotations
 
@@ -31,7 +36,7 @@ import numpy as np
 class Args:
     quick: bool = False
     episodes: int = 200
-    controllers: str = "iqn,attractor,errt"
+    controllers: str = "iqn,attractor,errt,memory"
     agent: str = str(Path(__file__).resolve().parents[1] / "checkpoints" / "iqn_agent.pt")
     threads: int = 1
     seed: int = 0
@@ -45,6 +50,8 @@ class Args:
     out: str = "eval_controllers"
     report: str = ""
     atlas_cache: str = "default"
+    agent_waypoints: int = -1  # waypoint_lookahead of the iqn controllers' environment; -1: the agent's own
+    no_sweep: bool = False  # with waypoints: no memory of a sweep of the training maps either
 
 
 def parse(argv=None) -> Args:
@@ -86,12 +93,15 @@ def make_controller(name: str, env, seed: int, agent: str = ""):
         return AttractorController(mpp)
     if name == "errt":
         return ERRTController(mpp, seed=seed)
+    if name == "memory":
+        from cmlearn.planning.memory import MemoryPlannerController
+        return MemoryPlannerController(mpp)
     if name == "random":
         return RandomPolicy(seed)
     if name == "teacher":  # privileged (reads the map): a reference, not a robot controller
         from cmlearn.rl.teacher import GeodesicTeacher
         return GeodesicTeacher(env)
-    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, iqn_greedy, attractor, errt, random, teacher)")
+    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, iqn_greedy, attractor, errt, memory, random, teacher)")
 
 
 def plot_episode(res, map_, path: Path, title: str):
@@ -163,12 +173,19 @@ def main(argv=None):
     table, t_start = {}, time.perf_counter()
     for name in [c.strip() for c in args.controllers.split(",") if c.strip()]:
         table[name] = {}
+        lookahead = 0
+        if name in ("iqn", "iqn_greedy"):  # the observation the agent was trained on (cmlearn.rl.env waypoints)
+            from cmlearn.rl.agent import load_agent
+            lookahead = args.agent_waypoints if args.agent_waypoints >= 0 else int(
+                load_agent(args.agent)[1].get("train_config", {}).get("waypoint_lookahead", 0))
         for label, disturbed, split in settings:
             seeds = rl.map_seeds(split, args.train_maps if split == "train" else args.unseen_maps)
             dist = rl.DisturbanceConfig(probability=args.disturbance_probability if disturbed else 0.0,
                                         magnitude=(args.disturbance_min, args.disturbance_max))
             env = gym.make(rl.ENV_ID, map_seeds=seeds, disturbance=dist, atlas_cache=args.atlas_cache,
-                           switching=rl.SwitchingConfig(switch_distance=args.switch_distance))
+                           switching=rl.SwitchingConfig(switch_distance=args.switch_distance),
+                           waypoint_lookahead=lookahead,
+                           waypoint_prior=bool(lookahead) and split == "train" and not args.no_sweep)
             ctrl = make_controller(name, env, args.seed, args.agent)
             t0 = time.perf_counter()
             results = [rl.run_episode(env, ctrl, seed=args.seed * 1_000_003 + ep) for ep in range(args.episodes)]

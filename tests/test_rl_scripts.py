@@ -30,23 +30,24 @@ def test_bench_env_quick(tmp_path):
 def test_train_agent_then_eval_controllers_quick(tmp_path):
     net = '{"stem_channels": 4, "widths": [4], "feature_dim": 16, "hidden_dim": 16, "num_cosines": 8}'
     res = run_script([str(ROOT / "scripts/train_agent.py"), "--quick", "--out", "run", "--no-progress", "--network", net,
-                      "--ship", "agent.pt"], tmp_path)
+                      "--ship", "agent.pt", "--waypoint-lookahead", "8"], tmp_path)
     assert res["frames"] == 1024 and res["updates"] > 0 and res["final_eval"] is not None
     meta = json.loads((tmp_path / "agent.json").read_text())
     assert "--quick" in meta["command"] and meta["frames"] == 1024 and meta["wall_s"] > 0
+    assert meta["train_config"]["waypoint_lookahead"] == 8  # the evaluation gives the agent the same observation
     assert (tmp_path / "run" / "train_state.pt").exists() and (tmp_path / "run" / "log").is_dir()
     rep = run_script([str(ROOT / "scripts/report_agent.py"), "--agent", "agent.json", "--out", "rep"], tmp_path)
     assert rep["points"] == 2 and (tmp_path / "rep.png").exists() and (tmp_path / "rep.md").exists()
     res = run_script([str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1", "--train-maps", "1",
                       "--unseen-maps", "1", "--out", "ev", "--report", "ev/report.md", "--agent", "agent.pt"], tmp_path)
     table = res["results"]
-    assert set(table) == {"iqn", "attractor", "errt"}
+    assert set(table) == {"iqn", "attractor", "errt", "memory"}
     for rows in table.values():
         assert set(rows) == {"undisturbed/train", "undisturbed/unseen", "disturbed/train", "disturbed/unseen"}
         for s in rows.values():
             assert s["episodes"] == 1 and 0 <= s["ci95"][0] <= s["success_rate"] <= s["ci95"][1] <= 1
             assert len(s["tracking_error_mean_m"]) == 2 and s["decision_ms"] > 0
-    assert (tmp_path / "ev" / "report.md").exists() and len(list((tmp_path / "ev").glob("*.png"))) == 12
+    assert (tmp_path / "ev" / "report.md").exists() and len(list((tmp_path / "ev").glob("*.png"))) == 16
 
 
 def test_wilson_interval():

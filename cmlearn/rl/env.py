@@ -30,11 +30,23 @@ Interface (thesis lines 700-735):
   direction along a straight line inside the free space to a spot connected to the goal, as when
   the experimenter drew it away; at most ``max_count`` per episode, not before ``min_step``.
 
+* Waypoints (``waypoint_lookahead`` > 0; off by default, the thesis's observation): the goal
+  half of channel 1 marks, instead of the goal, the waypoint ``waypoint_lookahead`` moves down the
+  optimistic plan of a :class:`~cmlearn.planning.memory.MemoryPlanner` that remembers every
+  observed view of the episode (``info["waypoint_xy"]``). Only what the robot has goes into it:
+  its views, where they were taken, its end-effector and the goal. It gives a memoryless policy
+  the map memory it lacks in unseen maps; rewards and success still refer to the goal. The
+  planning time is ``info["waypoint_s"]``, counted in the decision time by
+  :func:`~cmlearn.rl.switching.run_episode`. With ``waypoint_prior`` the memory starts from every
+  view of the map's image atlas, i.e. from a camera sweep of the map as the thesis recorded its
+  workspace: a map the robot has swept before (the training maps); without it, it starts empty.
+
 All randomness flows from ``reset(seed=...)`` (``self.np_random``).
 """
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, fields, replace
 
 import gymnasium as gym
@@ -91,6 +103,8 @@ class EnvConfig:
     shaping: float = 0.05
     sc1_max_steps: int = 100
     tool_length: float = 0.06
+    waypoint_lookahead: int = 0
+    waypoint_prior: bool = False
     atlas_cache: str | None = "default"
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
     switching: SwitchingConfig | None = field(default_factory=SwitchingConfig)
@@ -106,12 +120,15 @@ class EnvConfig:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
         if not (0 < self.obstacle_window <= self.camera.size):
             raise ValueError(f"obstacle_window must be in [1, {self.camera.size}], got {self.obstacle_window}")
+        if not (isinstance(self.waypoint_lookahead, int) and self.waypoint_lookahead >= 0):
+            raise ValueError(f"waypoint_lookahead must be an int >= 0, got {self.waypoint_lookahead!r}")
         if not self.map_seeds and self.map_path is None:
             raise ValueError("map_seeds is empty and map_path is None: the environment has no map")
 
 
 _MAPS: dict = {}
 _ATLASES: dict = {}
+_SWEEPS: dict = {}
 
 
 def _cached_map(cfg: EnvConfig, seed: int | None) -> Map:
@@ -159,6 +176,11 @@ class MagneticParticleEnv(gym.Env):
         start = (n - cfg.obstacle_window) // 2
         self._win = slice(start, start + cfg.obstacle_window)
         self._wall = lambda x, y: self.map.touches_wall(x, y, self.radius)
+        self.planner = None
+        if cfg.waypoint_lookahead:
+            from cmlearn.planning.memory import MemoryPlanner
+            self.planner = MemoryPlanner(cfg.camera.metres_per_pixel, step=cfg.action_step,
+                                         lookahead=cfg.waypoint_lookahead)
         self.map = None
         self._done = True
         self.trajectory: list[tuple[float, float, float, float, int]] = []
@@ -209,6 +231,8 @@ class MagneticParticleEnv(gym.Env):
             self.law.reset()
             self.sc1.reset()
         self.trajectory = [(*self.ee, *self.sim.position, 2)]
+        if self.planner is not None:
+            self.planner.reset(self._bounds(), self.goal_xy, self._sweep() if self.config.waypoint_prior else None)
         return self._obs(), self._info()
 
     def _place(self, xy, user: bool) -> bool:
@@ -308,8 +332,14 @@ class MagneticParticleEnv(gym.Env):
         n = self.config.camera.size
         obs = np.zeros((2, n, n), dtype=np.uint8)
         obs[0] = self.atlas.view(*self.ee) if view is None else view
+        self.waypoint_xy, self.waypoint_s = self.goal_xy, 0.0
+        if self.planner is not None:
+            t0 = time.perf_counter()
+            self.planner.add_view(obs[0], self.map.node_xy(*self.map.nearest_node(*self.ee)))
+            self.waypoint_xy = self.planner.plan(self.ee)[1]
+            self.waypoint_s = time.perf_counter() - t0
         h = n // 2
-        for row0, (x, y) in ((0, self.goal_xy), (h, self.ee)):
+        for row0, (x, y) in ((0, self.waypoint_xy), (h, self.ee)):
             r, c = self._marker(x, y, h, n)
             obs[1, row0 + max(r - 1, 0):row0 + min(r + 2, h), max(c - 1, 0):c + 2] = 255
         return obs
@@ -322,12 +352,26 @@ class MagneticParticleEnv(gym.Env):
         return int(round(v * (rows - 1))), int(round(u * (cols - 1)))
 
     def _info(self) -> dict:
-        m = self.map
         return {"ee_xy": self.ee, "particle_xy": self.sim.position, "goal_xy": self.goal_xy,
+                "waypoint_xy": self.waypoint_xy, "waypoint_s": self.waypoint_s,
                 "view_xy": self.map.node_xy(*self.map.nearest_node(*self.ee)), "reason": self.reason,
                 "steps": self.steps, "sc1_steps": self.sc1_steps, "disturbances": self.disturbances,
-                "controller": self.controller, "map": self.map.name,
-                "bounds": (m.origin[0], m.origin[1], m.origin[0] + m.size[0], m.origin[1] + m.size[1])}
+                "controller": self.controller, "map": self.map.name, "bounds": self._bounds()}
+
+    def _sweep(self) -> np.ndarray:
+        """The planner's memory after pasting every atlas view of the map (cached per map)."""
+        key = (id(self.map), self.config.camera, self.config.action_step)
+        if key not in _SWEEPS or _SWEEPS[key][0] is not self.map:
+            self.planner.reset(self._bounds(), self.goal_xy)
+            for i in range(self.map.nx):
+                for j in range(self.map.ny):
+                    self.planner.add_view(self.atlas.node_view(i, j), self.map.node_xy(i, j))
+            _SWEEPS[key] = (self.map, self.planner.occ.copy())
+        return _SWEEPS[key][1]
+
+    def _bounds(self) -> tuple[float, float, float, float]:
+        m = self.map
+        return m.origin[0], m.origin[1], m.origin[0] + m.size[0], m.origin[1] + m.size[1]
 
     def obstacle_detected(self, view: np.ndarray) -> bool:
         """The thesis's rule: mean of the central window of a camera view below the threshold."""

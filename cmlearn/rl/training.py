@@ -54,6 +54,7 @@ class AgentTrainConfig:
     train_maps: int = 8
     max_steps: int = 150
     disturbance_probability: float = 0.02
+    waypoint_lookahead: int = 0  # > 0: the goal marker shows the map-memory planner's waypoint (cmlearn.rl.env)
     num_envs: int = 4
     workers: int = 1
     # collection and replay
@@ -148,7 +149,7 @@ class TrainResult:
 def _env_kwargs(cfg: AgentTrainConfig, maps) -> dict:
     from .env import DisturbanceConfig
     from .maps import map_seeds
-    kw = dict(max_steps=cfg.max_steps, atlas_cache="default",
+    kw = dict(max_steps=cfg.max_steps, atlas_cache="default", waypoint_lookahead=cfg.waypoint_lookahead,
               disturbance=DisturbanceConfig(probability=cfg.disturbance_probability))
     if maps is not None:
         kw["maps"] = list(maps)
