@@ -13,9 +13,9 @@ failure reasons. Saves trajectory plots like Figures 4.9-4.13 and a markdown tab
 JSON line last. ``--switch-distance`` sets the switching law's threshold (default 5 cm, the
 thesis's 10 cm with 0.10; see :mod:`cmlearn.rl.switching`). The ``iqn`` controllers run in the
 environment their agent was trained in: with the map-memory waypoint in the goal marker when its
-``train_config.waypoint_lookahead`` is > 0 (``--agent-waypoints N`` overrides, 0 = the goal); the
-planner's memory then starts from a camera sweep of each training map (the maps the robot has
-swept before; ``--no-sweep`` starts it empty there too) and empty on the unseen maps.
+``train_config.waypoint_lookahead`` is > 0 (``--agent-waypoints N`` overrides, 0 = the goal). The
+memory of those and of ``memory`` starts from a camera sweep of each training map (maps the robot
+has swept before; ``--no-sweep`` starts it empty there too) and empty on the unseen maps.
 
     python scripts/eval_controllers.py [--quick] [--episodes 200] [--controllers iqn,attractor,errt,memory]
 """
@@ -51,7 +51,7 @@ class Args:
     report: str = ""
     atlas_cache: str = "default"
     agent_waypoints: int = -1  # waypoint_lookahead of the iqn controllers' environment; -1: the agent's own
-    no_sweep: bool = False  # with waypoints: no memory of a sweep of the training maps either
+    no_sweep: bool = False  # memory controllers (iqn with waypoints, memory): no sweep of the training maps either
 
 
 def parse(argv=None) -> Args:
@@ -82,7 +82,7 @@ def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return max(0.0, mid - half), min(1.0, mid + half)
 
 
-def make_controller(name: str, env, seed: int, agent: str = ""):
+def make_controller(name: str, env, seed: int, agent: str = "", sweep: bool = False):
     from cmlearn.planning import AttractorController, ERRTController
     from cmlearn.rl import RandomPolicy
     mpp = env.unwrapped.config.camera.metres_per_pixel
@@ -93,9 +93,9 @@ def make_controller(name: str, env, seed: int, agent: str = ""):
         return AttractorController(mpp)
     if name == "errt":
         return ERRTController(mpp, seed=seed)
-    if name == "memory":
+    if name == "memory":  # with the sweep of the map as prior where the agent gets it too
         from cmlearn.planning.memory import MemoryPlannerController
-        return MemoryPlannerController(mpp)
+        return MemoryPlannerController(mpp, prior=env.unwrapped.sweep_memory if sweep else None)
     if name == "random":
         return RandomPolicy(seed)
     if name == "teacher":  # privileged (reads the map): a reference, not a robot controller
@@ -182,11 +182,11 @@ def main(argv=None):
             seeds = rl.map_seeds(split, args.train_maps if split == "train" else args.unseen_maps)
             dist = rl.DisturbanceConfig(probability=args.disturbance_probability if disturbed else 0.0,
                                         magnitude=(args.disturbance_min, args.disturbance_max))
+            sweep = (name == "memory" or lookahead > 0) and split == "train" and not args.no_sweep
             env = gym.make(rl.ENV_ID, map_seeds=seeds, disturbance=dist, atlas_cache=args.atlas_cache,
                            switching=rl.SwitchingConfig(switch_distance=args.switch_distance),
-                           waypoint_lookahead=lookahead,
-                           waypoint_prior=bool(lookahead) and split == "train" and not args.no_sweep)
-            ctrl = make_controller(name, env, args.seed, args.agent)
+                           waypoint_lookahead=lookahead, waypoint_prior=sweep and lookahead > 0)
+            ctrl = make_controller(name, env, args.seed, args.agent, sweep)
             t0 = time.perf_counter()
             results = [rl.run_episode(env, ctrl, seed=args.seed * 1_000_003 + ep) for ep in range(args.episodes)]
             summ = summarize(results)

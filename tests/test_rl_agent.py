@@ -257,7 +257,9 @@ def test_shipped_agent_checkpoint_loads_acts_deterministically_and_records_its_t
     assert meta["wall_s"] > 0 and meta["evaluations"] and path.stat().st_size < 5e6
     import cmlearn.rl as rl
     from cmlearn.rl.agent import ActingGuard
-    env = MagneticParticleEnv(map_seeds=rl.map_seeds("train", 8))
+    look = meta["train_config"]["waypoint_lookahead"]  # it was trained to follow the map memory's waypoints
+    assert look > 0
+    env = MagneticParticleEnv(map_seeds=rl.map_seeds("train", 8), waypoint_lookahead=look, waypoint_prior=True)
     obs, info = env.reset(seed=0)
     assert np.array_equal(a.q_values(obs), b.q_values(obs)) and a.act(obs, info) == b.act(obs, info)
     r1, r2 = run_episode(env, a, seed=3), run_episode(env, b, seed=3)
@@ -266,6 +268,10 @@ def test_shipped_agent_checkpoint_loads_acts_deterministically_and_records_its_t
     guarded = IQNAgent.load(path, guard=ActingGuard())
     wins = [run_episode(env, guarded, seed=100 + i).success for i in range(10)]
     assert sum(wins) >= 9, wins
+    # and on maps it never saw, with the memory starting empty (100 % over 200 in the README)
+    env = MagneticParticleEnv(map_seeds=rl.map_seeds("unseen", 2), waypoint_lookahead=look)
+    wins = [run_episode(env, guarded, seed=100 + i).success for i in range(10)]
+    assert sum(wins) >= 8, wins
 
 
 # ---------------------------------------------------------------- learning from demonstrations (DQfD)

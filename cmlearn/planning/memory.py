@@ -144,13 +144,17 @@ class MemoryPlanner:
 
 
 class MemoryPlannerController:
-    """Classical Sub-controller 2: paste the view, take the move of least optimistic cost-to-go."""
+    """Classical Sub-controller 2: paste the view, take the move of least optimistic cost-to-go.
 
-    def __init__(self, metres_per_pixel: float, **planner_kwargs):
+    ``prior`` (optional): a callable returning the occupancy grid the memory starts from at each
+    reset, e.g. the environment's sweep of a map the robot has seen before."""
+
+    def __init__(self, metres_per_pixel: float, prior=None, **planner_kwargs):
         self.planner = MemoryPlanner(metres_per_pixel, **planner_kwargs)
+        self.prior = prior
 
     def reset(self, info=None) -> None:
-        self.planner.reset(info["bounds"], info["goal_xy"])
+        self.planner.reset(info["bounds"], info["goal_xy"], None if self.prior is None else self.prior())
 
     def act(self, obs, info) -> int:
         self.planner.add_view(np.asarray(obs)[0], info["view_xy"])

@@ -232,7 +232,7 @@ class MagneticParticleEnv(gym.Env):
             self.sc1.reset()
         self.trajectory = [(*self.ee, *self.sim.position, 2)]
         if self.planner is not None:
-            self.planner.reset(self._bounds(), self.goal_xy, self._sweep() if self.config.waypoint_prior else None)
+            self.planner.reset(self._bounds(), self.goal_xy, self.sweep_memory() if self.config.waypoint_prior else None)
         return self._obs(), self._info()
 
     def _place(self, xy, user: bool) -> bool:
@@ -358,15 +358,18 @@ class MagneticParticleEnv(gym.Env):
                 "steps": self.steps, "sc1_steps": self.sc1_steps, "disturbances": self.disturbances,
                 "controller": self.controller, "map": self.map.name, "bounds": self._bounds()}
 
-    def _sweep(self) -> np.ndarray:
-        """The planner's memory after pasting every atlas view of the map (cached per map)."""
-        key = (id(self.map), self.config.camera, self.config.action_step)
+    def sweep_memory(self) -> np.ndarray:
+        """A :class:`~cmlearn.planning.memory.MemoryPlanner` memory after pasting every view of the
+        current map's image atlas, i.e. after a camera sweep of the map (cached per map)."""
+        from cmlearn.planning.memory import MemoryPlanner
+        key = (id(self.map), self.config.camera)
         if key not in _SWEEPS or _SWEEPS[key][0] is not self.map:
-            self.planner.reset(self._bounds(), self.goal_xy)
+            planner = MemoryPlanner(self.config.camera.metres_per_pixel)
+            planner.reset(self._bounds(), self.goal_xy)
             for i in range(self.map.nx):
                 for j in range(self.map.ny):
-                    self.planner.add_view(self.atlas.node_view(i, j), self.map.node_xy(i, j))
-            _SWEEPS[key] = (self.map, self.planner.occ.copy())
+                    planner.add_view(self.atlas.node_view(i, j), self.map.node_xy(i, j))
+            _SWEEPS[key] = (self.map, planner.occ.copy())
         return _SWEEPS[key][1]
 
     def _bounds(self) -> tuple[float, float, float, float]:

@@ -36,7 +36,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from cmlearn.io import atomic_write
+from cmlearn.io import atomic_write, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, find_iqn_network, make_iqn_actor
 
 from .agent import IQNAgent, save_agent
@@ -425,7 +425,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
     result.evaluations = evaluations
     result.agent_path = str(out / "agent.pt")
     result.best_agent_path = str(out / "best_agent.pt") if (out / "best_agent.pt").is_file() else ""
-    (out / "summary.json").write_text(json.dumps(asdict(result), indent=2))
+    write_text_atomic(out / "summary.json", json.dumps(asdict(result), indent=2))
     return result
 
 
