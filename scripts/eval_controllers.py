@@ -42,6 +42,7 @@ class Args:
     seed: int = 0
     train_maps: int = 8
     unseen_maps: int = 8
+    unseen_offset: int = 0  # unseen maps from procedural seed 10000 + offset (a fresh set: 8, 16, ...)
     disturbance_probability: float = 0.03
     disturbance_min: float = 0.06
     disturbance_max: float = 0.15
@@ -68,6 +69,8 @@ def parse(argv=None) -> Args:
             min(a.unseen_maps, 2), min(a.plots, 1)
     if a.episodes < 1:
         raise SystemExit(f"--episodes must be >= 1, got {a.episodes}")
+    if a.unseen_offset < 0:
+        raise SystemExit(f"--unseen-offset must be >= 0, got {a.unseen_offset}")
     return a
 
 
@@ -179,7 +182,8 @@ def main(argv=None):
             lookahead = args.agent_waypoints if args.agent_waypoints >= 0 else int(
                 load_agent(args.agent)[1].get("train_config", {}).get("waypoint_lookahead", 0))
         for label, disturbed, split in settings:
-            seeds = rl.map_seeds(split, args.train_maps if split == "train" else args.unseen_maps)
+            seeds = rl.map_seeds(split, args.train_maps if split == "train" else args.unseen_maps + args.unseen_offset)
+            seeds = seeds if split == "train" else seeds[args.unseen_offset:]
             dist = rl.DisturbanceConfig(probability=args.disturbance_probability if disturbed else 0.0,
                                         magnitude=(args.disturbance_min, args.disturbance_max))
             sweep = (name == "memory" or lookahead > 0) and split == "train" and not args.no_sweep

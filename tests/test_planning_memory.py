@@ -116,6 +116,8 @@ def test_env_marks_the_waypoint_instead_of_the_goal(hook_env):
     plain.close()
     with pytest.raises(ValueError, match="waypoint_lookahead"):
         MagneticParticleEnv(maps=[hook_env.get_map(0)], atlas_cache=None, waypoint_lookahead=-1)
+    with pytest.raises(ValueError, match="waypoint_prior"):
+        MagneticParticleEnv(maps=[hook_env.get_map(0)], atlas_cache=None, waypoint_prior=True)
 
 
 def test_sweep_prior_starts_the_memory_from_the_whole_map(hook_env):

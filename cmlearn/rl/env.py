@@ -122,6 +122,8 @@ class EnvConfig:
             raise ValueError(f"obstacle_window must be in [1, {self.camera.size}], got {self.obstacle_window}")
         if not (isinstance(self.waypoint_lookahead, int) and self.waypoint_lookahead >= 0):
             raise ValueError(f"waypoint_lookahead must be an int >= 0, got {self.waypoint_lookahead!r}")
+        if self.waypoint_prior and not self.waypoint_lookahead:
+            raise ValueError("waypoint_prior=True needs waypoint_lookahead > 0 (the prior is the waypoint planner's memory)")
         if not self.map_seeds and self.map_path is None:
             raise ValueError("map_seeds is empty and map_path is None: the environment has no map")
 
