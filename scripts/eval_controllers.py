@@ -182,8 +182,9 @@ def main(argv=None):
             lookahead = args.agent_waypoints if args.agent_waypoints >= 0 else int(
                 load_agent(args.agent)[1].get("train_config", {}).get("waypoint_lookahead", 0))
         for label, disturbed, split in settings:
-            seeds = rl.map_seeds(split, args.train_maps if split == "train" else args.unseen_maps + args.unseen_offset)
-            seeds = seeds if split == "train" else seeds[args.unseen_offset:]
+            seeds = rl.map_seeds(split, args.train_maps if split == "train" else args.unseen_maps)
+            if split == "unseen":
+                seeds = tuple(s + args.unseen_offset for s in seeds)
             dist = rl.DisturbanceConfig(probability=args.disturbance_probability if disturbed else 0.0,
                                         magnitude=(args.disturbance_min, args.disturbance_max))
             sweep = (name == "memory" or lookahead > 0) and split == "train" and not args.no_sweep

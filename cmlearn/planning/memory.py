@@ -83,11 +83,10 @@ class MemoryPlanner:
         k = (np.arange(n) + 0.5 - n / 2) * self.mpp
         r, c = np.broadcast_arrays(*self._cells(view_xy[0] + k[None, :], view_xy[1] - k[:, None]))
         ok = (r >= 0) & (r < self.occ.shape[0]) & (c >= 0) & (c < self.occ.shape[1])
-        wall = (view < self.wall_below) & ok
-        free = ~(view < self.wall_below) & ok
-        fr, fc = r[free], c[free]
-        self.occ[fr, fc] = np.where(self.occ[fr, fc] == 1, 1, 0)
-        self.occ[r[wall], c[wall]] = 1
+        dark = view < self.wall_below
+        fr, fc = r[~dark & ok], c[~dark & ok]
+        self.occ[fr, fc] = np.maximum(self.occ[fr, fc], 0)  # unknown -> free; a known wall stays
+        self.occ[r[dark & ok], c[dark & ok]] = 1
         self._clear = None
 
     def known_clearance(self) -> np.ndarray:
@@ -124,8 +123,7 @@ class MemoryPlanner:
             keep = ok.ravel()[a.ravel()] & ok.ravel()[b.ravel()]
             src.append(b.ravel()[keep]), dst.append(a.ravel()[keep]), w.append(enter.ravel()[b.ravel()[keep]])
         graph = coo_matrix((np.concatenate(w), (np.concatenate(src), np.concatenate(dst))), shape=(nx * ny,) * 2).tocsr()
-        D = dijkstra(graph, indices=idx[gi, gj]).reshape(nx, ny)
-        D = np.where(ok, D, np.inf)
+        D = dijkstra(graph, indices=idx[gi, gj]).reshape(nx, ny)  # inf off the allowed nodes (no edges there)
         total = D + enter  # cost of a path that enters the node first
         moves = np.array([total[i0 + di, j0 + dj] if 0 <= i0 + di < nx and 0 <= j0 + dj < ny else np.inf
                           for di, dj in _MOVES])

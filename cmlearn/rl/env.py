@@ -334,10 +334,11 @@ class MagneticParticleEnv(gym.Env):
         n = self.config.camera.size
         obs = np.zeros((2, n, n), dtype=np.uint8)
         obs[0] = self.atlas.view(*self.ee) if view is None else view
+        self.view_xy = self.map.node_xy(*self.map.nearest_node(*self.ee))  # where the view was taken
         self.waypoint_xy, self.waypoint_s = self.goal_xy, 0.0
         if self.planner is not None:
             t0 = time.perf_counter()
-            self.planner.add_view(obs[0], self.map.node_xy(*self.map.nearest_node(*self.ee)))
+            self.planner.add_view(obs[0], self.view_xy)
             self.waypoint_xy = self.planner.plan(self.ee)[1]
             self.waypoint_s = time.perf_counter() - t0
         h = n // 2
@@ -356,7 +357,7 @@ class MagneticParticleEnv(gym.Env):
     def _info(self) -> dict:
         return {"ee_xy": self.ee, "particle_xy": self.sim.position, "goal_xy": self.goal_xy,
                 "waypoint_xy": self.waypoint_xy, "waypoint_s": self.waypoint_s,
-                "view_xy": self.map.node_xy(*self.map.nearest_node(*self.ee)), "reason": self.reason,
+                "view_xy": self.view_xy, "reason": self.reason,
                 "steps": self.steps, "sc1_steps": self.sc1_steps, "disturbances": self.disturbances,
                 "controller": self.controller, "map": self.map.name, "bounds": self._bounds()}
 
