@@ -142,6 +142,44 @@ def test_switching_distance_decides_who_brings_a_dragged_particle_back():
         assert (math.dist(info["ee_xy"], info["particle_xy"]) < 0.02) == recaptured
 
 
+def corner_map(res=0.002):
+    """An open square whose lower-left quarter (x < 0, y < 0.42) is a wall block."""
+    n = int(round(0.3 / res))
+    img = np.full((n, n), FREE, np.uint8)
+    y, x = 0.30 + (n - 0.5 - np.arange(n)) * res, -0.15 + (np.arange(n) + 0.5) * res
+    img[np.ix_(y < 0.42, x < 0.0)] = WALL
+    return Map(img, res, (-0.15, 0.30), name="corner")
+
+
+def test_fast_recapture_does_not_pull_the_particle_across_a_wall_corner():
+    """The particle lies 2 cm right of the block's edge, the magnet 10.6 cm away above the block: the
+    straight line between them crosses the corner. Approaching at 0.15 m/s the magnet drags the
+    particle into the corner; at the UR5's tool speed (the default) it is over it in one period."""
+    for speed, reason, sc1 in ((0.15, "collision", 5), (None, "running", 1)):
+        kw = {} if speed is None else {"switching": rl.SwitchingConfig(max_speed=speed)}
+        env = make([corner_map()], **kw)
+        env.reset(seed=0, options={"start": (-0.065, 0.465), "goal": (0.105, 0.545)})
+        env.atlas.view = lambda x, y: np.full((84, 84), 200, np.uint8)
+        env.sim.reset(0.02, 0.39)  # dragged there
+        info = env.step(0)[-1]
+        assert (info["reason"], info["sc1_steps"]) == (reason, sc1)
+
+
+def test_sub_controller_1_moves_respect_the_joint_speed_limit():
+    from cmlearn.rl.ur5 import JOINT_SPEED
+    env = make([open_square()])
+    env.reset(seed=0, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
+    q0, cap = env.q.copy(), JOINT_SPEED * env.config.control_period
+    near = (0.015, 0.455)  # 1 cm: untouched
+    assert env._joint_limited(near)[0] == near
+    far = (-0.145, 0.305)  # 21 cm in one period: shortened along the same line until the joints keep up
+    (x, y), q = env._joint_limited(far)
+    assert q is not None and cap * 0.9 < np.abs(q - q0).max() <= cap
+    assert np.allclose(env.robot.fk(q)[:2, 3], (x, y), atol=1e-6)
+    t = (x - 0.005) / (far[0] - 0.005)
+    assert 0.05 < t < 0.95 and math.isclose(y, 0.455 + t * (far[1] - 0.455), abs_tol=1e-9)
+
+
 def test_seeded_determinism():
     def rollout():
         env = MagneticParticleEnv(map_seeds=(3, 4), map_size=(0.24, 0.24), atlas_cache=None,

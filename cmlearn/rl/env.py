@@ -58,7 +58,7 @@ from .camera import CameraSpec
 from .maps import Map, load_map, map_seeds, procedural_map
 from .particle import ParticleParams, ParticleSim
 from .switching import SubController1, SwitchingConfig, SwitchingLaw
-from .ur5 import UR5, IKError
+from .ur5 import JOINT_SPEED, UR5, IKError
 
 __all__ = ["EnvConfig", "DisturbanceConfig", "MagneticParticleEnv", "ACTIONS"]
 
@@ -285,10 +285,10 @@ class MagneticParticleEnv(gym.Env):
         return self._obs(view), float(reward), terminated, truncated, self._info()
 
     # ------------------------------------------------------------------ internals
-    def _move(self, target, controller: int) -> str:
-        """Move the end-effector to ``target`` over one control period; returns the outcome."""
+    def _move(self, target, controller: int, q=None) -> str:
+        """Move the end-effector to ``target`` (joints ``q`` if known) over one control period; returns the outcome."""
         try:
-            self.q = self.robot.ik([target[0], target[1], self.height], self.q)
+            self.q = self.robot.ik([target[0], target[1], self.height], self.q) if q is None else q
         except IKError:
             return "ik_failure"
         hit = self.sim.advance(self.ee, target, self.config.control_period, self._wall)
@@ -299,12 +299,29 @@ class MagneticParticleEnv(gym.Env):
     def _recapture(self):
         self.controller = 1
         for _ in range(self.config.sc1_max_steps):
-            target = self.sc1(self.ee, self.sim.position, self.config.control_period)
+            target, q = self._joint_limited(self.sc1(self.ee, self.sim.position, self.config.control_period))
             self.sc1_steps += 1
-            self.reason = self._move(target, 1)
+            self.reason = self._move(target, 1, q)
             if self.reason != "running" or self.law(self.ee, self.sim.position) == 2:
                 return
         self.reason = "recapture_failed"
+
+    def _joint_limited(self, target):
+        """Shorten a Sub-controller 1 move so that no joint turns faster than the UR5's
+        ``JOINT_SPEED`` in one control period; returns the target and its joints (None: no IK, which
+        :meth:`_move` reports)."""
+        x0, y0 = self.ee
+        for _ in range(8):
+            try:
+                q = self.robot.ik([target[0], target[1], self.height], self.q)
+            except IKError:
+                return target, None
+            ratio = float(np.abs(q - self.q).max()) / (JOINT_SPEED * self.config.control_period)
+            if ratio <= 1.0:
+                return target, q
+            f = 0.98 / ratio  # the joints move nearly linearly with the tool over one period
+            target = (x0 + f * (target[0] - x0), y0 + f * (target[1] - y0))
+        return target, None
 
     def _maybe_disturb(self):
         d = self.config.disturbance

@@ -26,13 +26,15 @@ import numpy as np
 
 from ..io import write_text_atomic
 
-__all__ = ["UR5", "IKError", "DH_D", "DH_A", "DH_ALPHA", "DOWN", "ur5_urdf", "write_urdf"]
+__all__ = ["UR5", "IKError", "DH_D", "DH_A", "DH_ALPHA", "DOWN", "JOINT_SPEED", "TOOL_SPEED", "ur5_urdf", "write_urdf"]
 
 DH_D = (0.089159, 0.0, 0.0, 0.10915, 0.09465, 0.0823)
 DH_A = (0.0, -0.425, -0.39225, 0.0, 0.0, 0.0)
 DH_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
 LIMITS = np.array([[-2 * math.pi, 2 * math.pi]] * 2 + [[-math.pi, math.pi]] + [[-2 * math.pi, 2 * math.pi]] * 3)
 DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # tool z pointing at the table
+JOINT_SPEED = math.pi  # rad/s, every joint (UR5 CB3 data sheet: 180 deg/s)
+TOOL_SPEED = 1.0  # m/s, the data sheet's typical tool speed
 HOME = np.array([math.pi / 2, -1.9, 1.9, -math.pi / 2, -math.pi / 2, 0.0])
 
 
@@ -75,7 +77,7 @@ def ur5_urdf(tool_length: float = 0.06) -> str:
         lo, hi = LIMITS[i]
         lines.append(f'  <joint name="joint{i + 1}" type="revolute"><parent link="{parent}"/><child link="{name}"/>'
                      f'<origin xyz="{x} 0 {z}" rpy="{roll} 0 0"/><axis xyz="0 0 1"/>'
-                     f'<limit lower="{lo}" upper="{hi}" effort="150" velocity="3.15"/></joint>')
+                     f'<limit lower="{lo}" upper="{hi}" effort="150" velocity="{JOINT_SPEED:.4f}"/></joint>')
         parent, origin = name, (DH_A[i], DH_D[i], DH_ALPHA[i], 0.0)
     link("flange", 0.01, 0.01, 0.03)
     lines.append(f'  <joint name="flange_joint" type="fixed"><parent link="{parent}"/><child link="flange"/>'
