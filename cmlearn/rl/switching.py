@@ -15,8 +15,9 @@ a driver that runs any Sub-controller 2 (a policy or a classical planner) in the
   of the disturbed particle", line 800), and the default ``max_speed`` is the UR5's typical tool
   speed, 1 m/s (:data:`~cmlearn.rl.ur5.TOOL_SPEED`). A slow magnet passing beside a wall corner
   pulls the particle it approaches across the corner: the privileged teacher hit a wall in 12 of
-  400 disturbed training-map episodes with 0.15 m/s, 1 with 0.3, none with 0.5 or 1 m/s (episode
-  seeds ``11 * 1_000_003 + k``, apart from the evaluation's).
+  400 disturbed training-map episodes with 0.15 m/s (6 during a recapture), and at most once, never
+  during a recapture, with 0.3, 0.5 or 1 m/s (episode seeds ``11 * 1_000_003 + k``, apart from the
+  evaluation's; ``docs/controllers.md``).
 * **Switching law**: Sub-controller 1 takes over when ``|P_p - P_ee| > switch_distance`` and hands
   back to Sub-controller 2 when the distance falls below ``release_distance``. With
   ``release_distance == switch_distance`` this is exactly the thesis's law; the default 2 cm adds
