@@ -84,7 +84,7 @@ def main(argv=None):
     pos, force = pos.double(), W.double()[:, :, 0]
     cut = int(0.6 * (pos.shape[1] - 1))
     sets = {"every 5th (+ node 15): the `semicircle` task": list(base.tracked),
-            "every 2nd: `semicircle_dense`": list(range(0, 101, 2)), "all 101": list(range(101))}
+            "every 2nd": list(range(0, 101, 2)), "all 101": list(range(101))}
     rows = [{"nodes": name, "n": len(nodes), "history": h, **probe(pos, force, nodes, base.anchors, h, cut)}
             for h in a.history for name, nodes in sets.items()]
     ax = lambda v: " / ".join(f"{x:.3g}" for x in v)  # noqa: E731

@@ -54,11 +54,10 @@ def fmt(e) -> str:
     return " / ".join(f"{e[a]['max_mm']:.2f}, {e[a]['mean_mm']:.2f}" for a in "xyz")
 
 
-def thesis_for(scene: str, case: str):
-    """The thesis's errors for a checkpoint's case, by the task's printed scene (tasks may share one)."""
+def thesis_for(task: str, case: str):
     if case == "seen_last40":
-        return THESIS.get(scene)
-    return THESIS.get(case) or THESIS.get(f"{scene}_heldout")
+        return THESIS.get(task)
+    return THESIS.get(case) or THESIS.get(f"{task}_heldout")
 
 
 def rows(checkpoints):
@@ -67,7 +66,7 @@ def rows(checkpoints):
         meta = json.loads(path.with_suffix(".json").read_text())
         variant = "" if path.stem == meta["task"] else f" (`{path.name}`)"  # a second checkpoint of a task
         for case, m in meta["metrics"].items():
-            th = thesis_for(meta["scene"], case)
+            th = thesis_for(meta["task"], case)
             label = case if case != "seen_last40" else f"{meta['scene']} (last 40 %)"
             out.append({"task": meta["task"], "case": label + variant,
                         "thesis": " / ".join(f"{a}, {b}" for a, b in th) if th else "",

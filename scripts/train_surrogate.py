@@ -36,7 +36,6 @@ class Args:
     seed: int = 0
     eta: int = 2
     hidden: int = 48
-    stencil: int = 1  # neighbour rings each node sees: 1 (the thesis's n-1, n+1) or 2 (also n-2, n+2)
     horizon: int = 32
     warmup_epochs: int = 15
     epochs: int = 60
@@ -74,7 +73,7 @@ def parse(argv=None) -> Args:
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
-    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, stencil=a.stencil))
+    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden))
 
 
 def dataset_for(task, a: Args) -> dict:

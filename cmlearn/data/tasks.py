@@ -134,11 +134,10 @@ class SurrogateTask:
         import importlib
         return getattr(importlib.import_module(self.custom), name)
 
-    def model_config(self, stencil: int = 1, **kw):
-        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides
-        (second neighbours, with ``stencil=2``, beyond the overridden first ones)."""
+    def model_config(self, **kw):
+        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides."""
         from cmlearn.models import NodeLSTMConfig
-        cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, stencil=stencil, **kw)
+        cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, **kw)
         if not self.links:
             return cfg
         pos = {n: i for i, n in enumerate(self.tracked)}
@@ -147,7 +146,7 @@ class SurrogateTask:
             if m in self.links:
                 left[j], right[j] = (pos[x] for x in self.links[m])
         from dataclasses import replace
-        return replace(cfg, left=tuple(left), right=tuple(right)).with_stencil(stencil)
+        return replace(cfg, left=tuple(left), right=tuple(right))
 
     def record_every(self, scene: Scene) -> int:
         k = self.delta / scene.dt
@@ -296,12 +295,6 @@ TASKS = {
         heldout=("semicircle_heldout",), variants=_semicircle_variants,
         description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
                     "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
-    "semicircle_dense": SurrogateTask(
-        name="semicircle_dense", scene="semicircle", delta=0.01,
-        modeled=tuple(range(2, 100, 2)), anchors=(0, 100), wrench_nodes=(50,),
-        heldout=("semicircle_heldout",), variants=_semicircle_variants,
-        description="Simulation III, every second node: 49 modelled nodes (including the loaded node 51 and "
-                    "node 15), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
     "magnetic_rod": SurrogateTask(
         name="magnetic_rod", scene="magnetic_rod", delta=0.02,
         modeled=(2, 4, 5, 7, 9, 10, 11, 12, 13, 14), anchors=(0,), wrench_nodes=(4, 5, 9, 10),

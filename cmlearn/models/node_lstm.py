@@ -6,10 +6,9 @@ enter as displacements from a reference configuration ``ref`` (the rollout's ini
 way a finite-element model sees them, so the small motions that drive the dynamics are not buried
 under the large constant coordinates:
 
-* Input I, per frame (18 features; 30 with ``stencil=2``): the node's displacement ``(p_k - p_k^ref) /
-  D_k``, the changes of its neighbour offsets ``((p_j - p_k) - (p_j - p_k)^ref) / d_k`` (j = left, right,
-  and with ``stencil=2`` the neighbours' own outer neighbours), its step ``(p_k(tau) - p_k(tau - 1)) /
-  v_k`` and the reference offsets ``(p_j - p_k)^ref / L``; through an LSTM;
+* Input I, per frame (18 features): the node's displacement ``(p_k - p_k^ref) / D_k``, the changes
+  of its neighbour offsets ``((p_j - p_k) - (p_j - p_k)^ref) / d_k`` (j = left, right), its step
+  ``(p_k(tau) - p_k(tau - 1)) / v_k`` and the reference offsets ``(p_j - p_k)^ref / L``; through an LSTM;
 * Input II: the node force ``/ f_scale`` through two dense layers;
 * the LSTM's last output, the force features and a learned node embedding are concatenated and a
   dense head outputs the node's normalised second difference ``a_k``; the next position is
@@ -23,18 +22,14 @@ step. Anchors (clamped nodes) are known inputs. A free end has no right neighbou
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor, nn
 
 __all__ = ["NodeLSTMConfig", "NodeLSTMSurrogate"]
 
-
-
-def n_features(stencil: int) -> int:
-    """Input Layer I width per frame: displacement and step (6) and two offsets (12) per stencil ring."""
-    return 6 + 12 * stencil
+N_FEATURES = 18
 
 
 @dataclass(frozen=True)
@@ -48,49 +43,26 @@ class NodeLSTMConfig:
     wrench_hidden: int = 16
     embedding: int = 8
     head_hidden: int = 64
-    left2: tuple[int, ...] = ()    # with ``stencil=2``: the left neighbour's own left neighbour
-    right2: tuple[int, ...] = ()   # ... the right neighbour's right neighbour (the node itself at a free end)
-
-    @property
-    def stencil(self) -> int:
-        """Neighbour rings each node sees: 1 (left, right) or 2 (also left2, right2)."""
-        return 2 if self.left2 else 1
 
     def __post_init__(self):
         K = len(self.modeled)
         if K == 0 or len(self.left) != K or len(self.right) != K:
             raise ValueError("modeled, left and right must be non-empty and of equal length")
-        if (len(self.left2), len(self.right2)) not in ((0, 0), (K, K)):
-            raise ValueError("left2 and right2 must both be empty or both as long as modeled")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
-        for name in ("modeled", "left", "right", "left2", "right2"):
+        for name in ("modeled", "left", "right"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
 
     @staticmethod
-    def chain(tracked: tuple[int, ...], modeled: tuple[int, ...], stencil: int = 1, **kw) -> "NodeLSTMConfig":
+    def chain(tracked: tuple[int, ...], modeled: tuple[int, ...], **kw) -> "NodeLSTMConfig":
         """Neighbours along the tracked chain (rod node indices); the last tracked node, if modelled, is a
-        free end. ``stencil=2`` adds the second neighbours (bending forces on a node come from the
-        curvature at its neighbours, which depends on theirs: a five-node stencil)."""
-        if stencil not in (1, 2):
-            raise ValueError(f"stencil must be 1 or 2, got {stencil!r}")
+        free end."""
         pos = {n: i for i, n in enumerate(tracked)}
         idx = [pos[m] for m in modeled]
         left = [max(i - 1, 0) for i in idx]
         right = [min(i + 1, len(tracked) - 1) for i in idx]
-        cfg = NodeLSTMConfig(n_tracked=len(tracked), modeled=tuple(idx), left=tuple(left), right=tuple(right), **kw)
-        return cfg.with_stencil(stencil)
-
-    def with_stencil(self, stencil: int) -> "NodeLSTMConfig":
-        """The second neighbours from the (possibly overridden) first ones: the next along the tracked
-        chain beyond each, clamped at the ends; none beyond a free end."""
-        if stencil == 1:
-            return replace(self, left2=(), right2=())
-        last = self.n_tracked - 1
-        left2 = tuple(max(i - 1, 0) for i in self.left)
-        right2 = tuple(m if r == m else min(r + 1, last) for r, m in zip(self.right, self.modeled))
-        return replace(self, left2=left2, right2=right2)
+        return NodeLSTMConfig(n_tracked=len(tracked), modeled=tuple(idx), left=tuple(left), right=tuple(right), **kw)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -103,21 +75,20 @@ class NodeLSTMSurrogate(nn.Module):
         super().__init__()
         self.config = c = config
         K = len(c.modeled)
-        self.n_features = n_features(c.stencil)
-        self.lstm = nn.LSTM(self.n_features, c.hidden, batch_first=True)
+        self.lstm = nn.LSTM(N_FEATURES, c.hidden, batch_first=True)
         self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
         self.embed = nn.Embedding(K, c.embedding)
         self.head = nn.Sequential(nn.Linear(c.hidden + c.wrench_hidden + c.embedding, c.head_hidden), nn.Tanh(),
                                   nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
-        rings = (("left", c.left), ("right", c.right)) + ((("left2", c.left2), ("right2", c.right2)) if c.left2 else ())
-        for name, idx in (("modeled", c.modeled),) + rings:
-            self.register_buffer(f"idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
-        self._rings = [name for name, _ in rings]  # a neighbour that is the node itself (free end) gives a zero offset
+        for name, idx in (("idx_modeled", c.modeled), ("idx_left", c.left), ("idx_right", c.right)):
+            self.register_buffer(name, torch.tensor(idx, dtype=torch.long), persistent=False)
+        free_end = torch.tensor([float(r == m) for r, m in zip(c.right, c.modeled)])
+        self.register_buffer("has_right", 1.0 - free_end[:, None], persistent=False)
         self.register_buffer("length_scale", torch.ones(()))
         self.register_buffer("disp_scale", torch.ones(K, 3))
-        self.register_buffer("rel_scale", torch.ones(K, 6 * c.stencil))
+        self.register_buffer("rel_scale", torch.ones(K, 6))
         self.register_buffer("v_scale", torch.ones(K, 3))
         self.register_buffer("a_scale", torch.ones(K, 3))
         self.register_buffer("f_scale", torch.ones(()))
@@ -144,12 +115,12 @@ class NodeLSTMSurrogate(nn.Module):
         self.f_scale.fill_(float(wrench.abs().max()) if wrench.numel() and wrench.abs().max() > 0 else 1.0)
 
     def _offsets(self, p: Tensor) -> Tensor:
-        """Neighbour offsets (..., K, 6 * stencil) of positions (..., n_tracked, 3); zero beyond a free end."""
+        """Neighbour offsets (..., K, 6) of positions (..., n_tracked, 3); zero beyond a free end."""
         pk = p[..., self.idx_modeled, :]
-        return torch.cat([p[..., getattr(self, f"idx_{r}"), :] - pk for r in self._rings], -1)
+        return torch.cat([p[..., self.idx_left, :] - pk, (p[..., self.idx_right, :] - pk) * self.has_right], -1)
 
     def features(self, hist: Tensor, ref: Tensor) -> Tensor:
-        """(B, W, n_tracked, 3) history and (B, n_tracked, 3) reference -> (B, K, W, F) Input Layer I."""
+        """(B, W, n_tracked, 3) history and (B, n_tracked, 3) reference -> (B, K, W, 18) Input Layer I."""
         pk = hist[:, :, self.idx_modeled]
         rel0 = self._offsets(ref)[:, None]
         disp = (pk - ref[:, None, self.idx_modeled]) / self.disp_scale
@@ -163,20 +134,19 @@ class NodeLSTMSurrogate(nn.Module):
         """Inference speed-up. Input Layer I is linear in (history, reference): precompute it as one
         matrix (built by applying :meth:`features` to the unit basis) and, for compiled programs
         (``forward(..., program=True)``), per node, since node ``k``'s features depend only on its own
-        and its neighbours' positions: the matrix from those ``(eta + 2) * 3 * (1 + 2 stencil)``
-        numbers to its ``(eta + 1) * F`` features (eagerly one matrix product is faster, compiled the blocks).
+        and its two neighbours' positions: the matrix from those ``(eta + 2) * 9`` numbers to its
+        ``(eta + 1) * 18`` features (eagerly one matrix product is faster, compiled the blocks).
         Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``) returns to
         the explicit computation."""
         W, N, K = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel()
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
-        F = self.n_features
-        dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * F)
-        nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 3 or 5)
+        dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * N_FEATURES)
+        nodes = torch.stack([self.idx_left, self.idx_modeled, self.idx_right], -1)  # (K, 3)
         frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
         rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3, 3)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
-        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * F))
+        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * N_FEATURES))
         first = torch.ones_like(rows, dtype=torch.bool)  # a neighbour that is the node itself (free end) counts once
         for i in range(1, rows.shape[1]):
             first[:, i] = (rows[:, :i] != rows[:, i:i + 1]).all(1)
@@ -196,7 +166,7 @@ class NodeLSTMSurrogate(nn.Module):
         return super().train(mode)
 
     def _lstm_last(self, f: Tensor) -> Tensor:
-        """The LSTM's last output for (S, W, F) from the zero state, as its gate equations (the first
+        """The LSTM's last output for (S, W, 18) from the zero state, as its gate equations (the first
         recurrent product vanishes): for compiled programs, where it beats the decomposed ``nn.LSTM``."""
         lstm = self.lstm
         gx = f @ lstm.weight_ih_l0.t() + (lstm.bias_ih_l0 + lstm.bias_hh_l0)
@@ -215,15 +185,15 @@ class NodeLSTMSurrogate(nn.Module):
         function in the form that compiles best (frozen features per node, the LSTM as its gate
         equations), slower eagerly."""
         B, W = hist.shape[:2]
-        K, F = self.idx_modeled.numel(), self.n_features
+        K = self.idx_modeled.numel()
         M = getattr(self, "_feature_matrix", None)
         if M is None:
-            f = self.features(hist, ref).reshape(B * K, W, F)
+            f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
         elif program:
             x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)[:, self._feature_rows]  # (B, K, (W+1) * 9)
-            f = torch.einsum("bki,kio->bko", x, self._feature_blocks).reshape(B * K, W, F)
+            f = torch.einsum("bki,kio->bko", x, self._feature_blocks).reshape(B * K, W, N_FEATURES)
         else:
-            f = (torch.cat([hist, ref[:, None]], 1).reshape(B, -1) @ M).reshape(B * K, W, F)
+            f = (torch.cat([hist, ref[:, None]], 1).reshape(B, -1) @ M).reshape(B * K, W, N_FEATURES)
         h = (self._lstm_last(f) if program else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
