@@ -25,15 +25,15 @@ import torch
 
 from cmlearn.data import get_task
 from cmlearn.data.generate import simulate_task
+from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
-NODE = 50  # node 51 of 101, 0-based: where the force acts
 
 
-def probe(pos: torch.Tensor, force: torch.Tensor, nodes: list[int], anchors: tuple[int, ...], history: int,
-          cut: int, ridge: float = 1e-10) -> dict:
-    """Fit on every frame of variants 1.. and variant 0 before ``cut``; errors at NODE after it."""
+def probe(pos: torch.Tensor, force: torch.Tensor, nodes: list[int], anchors: tuple[int, ...], node: int,
+          history: int, cut: int, ridge: float = 1e-10) -> dict:
+    """Fit on every frame of variants 1.. and variant 0 before ``cut``; errors at ``node`` after it."""
     free = [n for n in nodes if n not in anchors]
     P = pos[:, :, nodes]
     V, T = P.shape[:2]
@@ -44,20 +44,20 @@ def probe(pos: torch.Tensor, force: torch.Tensor, nodes: list[int], anchors: tup
     sel = [nodes.index(n) for n in free]
     Y = torch.stack([(P[:, t + 1] - 2 * P[:, t] + P[:, t - 1])[:, sel].reshape(V, -1) for t in ts], 1)
     train = torch.ones(V, len(ts), dtype=torch.bool)
-    train[0] = torch.tensor([t >= cut for t in ts]).logical_not()
+    train[0] = torch.tensor([t < cut for t in ts])
     A = X[train].T @ X[train]
     A += ridge * A.diagonal().mean() * torch.eye(A.shape[0], dtype=A.dtype)
     B = torch.linalg.solve(A, X[train].T @ Y[train])
-    j = free.index(NODE)
+    j = free.index(node)
     test = ~train[0]
     err = (X[0, test] @ B - Y[0, test]).reshape(-1, len(free), 3)[:, j] * 1e3
     d2 = Y[0, test].reshape(-1, len(free), 3)[:, j] * 1e3
     Pr = P[0].clone()  # free-running from the cut on the map's own predictions
     for t in range(cut, T - 1):
-        d = (Pr - Pr[:1]).reshape(T, -1)
-        x = torch.cat([d[t - j] for j in range(history)] + [force[0, t], torch.ones(1, dtype=P.dtype)])
+        x = torch.cat([(Pr[t - j] - Pr[0]).reshape(-1) for j in range(history)]
+                      + [force[0, t], torch.ones(1, dtype=P.dtype)])
         Pr[t + 1, sel] = 2 * Pr[t, sel] - Pr[t - 1, sel] + (x @ B).reshape(len(free), 3)
-    k = nodes.index(NODE)
+    k = nodes.index(node)
     fr = (Pr[cut + 1:, k] - P[0, cut + 1:, k]).abs() * 1e3
     return {"one_step_err_rms_mm": [float(v) for v in err.pow(2).mean(0).sqrt()],
             "d2_rms_mm": [float(v) for v in d2.pow(2).mean(0).sqrt()],
@@ -82,10 +82,11 @@ def main(argv=None):
     pos, W, _, _ = simulate_task(every, a.variants, 0)
     sim_s = time.perf_counter() - t0
     pos, force = pos.double(), W.double()[:, :, 0]
-    cut = int(0.6 * (pos.shape[1] - 1))
+    cut = split_ranges(a.variants, pos.shape[1])["test"][0][1]  # the surrogates' 60 % cut
+    node = base.base_scene().nodes_of_interest[0]  # node 51 of 101, where the force acts
     sets = {"every 5th (+ node 15): the `semicircle` task": list(base.tracked),
             "every 2nd": list(range(0, 101, 2)), "all 101": list(range(101))}
-    rows = [{"nodes": name, "n": len(nodes), "history": h, **probe(pos, force, nodes, base.anchors, h, cut)}
+    rows = [{"nodes": name, "n": len(nodes), "history": h, **probe(pos, force, nodes, base.anchors, node, h, cut)}
             for h in a.history for name, nodes in sets.items()]
     ax = lambda v: " / ".join(f"{x:.3g}" for x in v)  # noqa: E731
     lines = [
