@@ -33,6 +33,17 @@ sinusoids (0.06-0.25 Hz) faded in over 2 s, at most 4 A, a kind of profile never
 the magnets swing up to 50 and 56 deg and at two moments snap over quickly (a fold of the
 equilibrium), where a static model cannot follow. The rod starts at rest hanging straight under
 gravity (static equilibrium; zero current at t = 0).
+
+Planar set-up (``magnetic_rod_planar``, chosen after the experiment of II.5.2, where the rod was
+suspended horizontally along x and steered in a plane, orientations about y): the same rod clamped at
+(-25, 0, 0) mm along +x (body E1 along -z), at rest sagging under gravity (tip 17 mm down, the magnets
+23 and 28 deg below the horizontal). The currents are the minimum-norm ones for fields in the x-z plane
+at (0, 0, -8) mm; the eMNS and these currents are mirror-symmetric about that plane, so the rod stays
+in it. Printed profile (24 s): minimum-jerk moves (1.5 s, 1 s holds) to 6 mT at 30, 60, 90, 30, -30,
+-60, -90, -30 deg from +x towards +z and back to zero (at most 5.5 A); the magnets then range over
+about -52..+39 deg, and between 36 and 39 deg of field the sagging rod snaps up (a fold). Held-out
+(``magnetic_rod_planar_heldout``): a field of 5 +- 1.5 mT sweeping through +-80 deg (two slow
+sinusoids), never holding.
 """
 from __future__ import annotations
 
@@ -49,7 +60,9 @@ from .scene import G_EARTH, Scene, dipole_moment
 from .scenes_cosserat import BR_N42, BR_N45, NDFEB, PMC770
 
 __all__ = ["BUILDERS", "MagnetBlockRod", "modal_damping", "magnetic_rod", "magnetic_rod_heldout", "magnetic_rod_scene", "printed_currents",
-           "heldout_currents", "eMNS", "MAGNET_ELEMENTS", "BASE_ROTATION", "FIELD_POINT"]
+           "heldout_currents", "eMNS", "MAGNET_ELEMENTS", "BASE_ROTATION", "FIELD_POINT", "magnetic_rod_planar",
+           "magnetic_rod_planar_heldout", "planar_field_basis", "planar_printed_currents", "planar_heldout_currents",
+           "PLANAR_BASE", "PLANAR_BASE_ROTATION", "PLANAR_FIELD_POINT", "PlanarFieldCurrents"]
 
 _EDGE, _BODY, _MAG, _NB = 2e-3, 22e-3, 3e-3, 4
 MAGNET_ELEMENTS = (_NB, 2 * _NB + 1)  # element index of the proximal and the distal block
@@ -169,27 +182,37 @@ def heldout_currents(seed: int = 2024, peak: float = 4.0) -> SinusoidCurrents:
 _EQ: dict = {}
 
 
-def _hanging(rod_: Rod) -> dict:
-    """At rest, hanging straight down under gravity (static equilibrium, zero current)."""
-    if rod_ not in _EQ:
-        from .relax import static_equilibrium
+def _at_rest(base=(0.0, 0.0, 0.0), rotation=BASE_ROTATION):
+    """Initial shape: clamped at ``base`` with the base frame ``rotation``, at rest under gravity (static
+    equilibrium from the straight rod, zero current)."""
+    def initial(rod_: Rod) -> dict:
+        key = (rod_, tuple(base), tuple(map(tuple, rotation)))
+        if key not in _EQ:
+            from .relax import static_equilibrium
 
-        p0 = torch.zeros(rod_.n_nodes, 3, dtype=torch.float64)
-        p0[:, 2] = -rod_.arclength
-        R0 = torch.tensor(BASE_ROTATION, dtype=torch.float64).expand(rod_.n_nodes, 3, 3).clone()
-        _EQ[rod_] = static_equilibrium(rod_, p0, R0, gravity=(0.0, 0.0, -G_EARTH))
-    p, R = _EQ[rod_]
-    return {"p": p.clone(), "R": R.clone()}
+            Rb = torch.tensor(rotation, dtype=torch.float64)
+            p0 = torch.tensor(base, dtype=torch.float64) + rod_.arclength[:, None] * Rb[:, 2]
+            R0 = Rb.expand(rod_.n_nodes, 3, 3).clone()
+            _EQ[key] = static_equilibrium(rod_, p0, R0, gravity=(0.0, 0.0, -G_EARTH))
+        p, R = _EQ[key]
+        return {"p": p.clone(), "R": R.clone()}
+    return initial
 
 
-def magnetic_rod_scene(name: str, currents, title: str, profile: str, duration: float = DURATION) -> Scene:
-    """The rod in the eMNS driven by ``currents(t) -> (C,)`` or ``(V, C)`` A."""
+_hanging = _at_rest()  # hanging straight down from the origin
+
+
+def magnetic_rod_scene(name: str, currents, title: str, profile: str, duration: float = DURATION,
+                       initial=_hanging, base: str = "clamped at the origin hanging down (body E3 = -z)",
+                       extra: dict | None = None, paragraphs: tuple[int, ...] = (1, 2)) -> Scene:
+    """The rod in the eMNS driven by ``currents(t) -> (C,)`` or ``(V, C)`` A; its description is the module
+    docstring's ``paragraphs`` (the planar set-up adds its own) and ``profile``."""
     r = rod()
     return Scene(
         name=name, title=title,
-        description=(__doc__.split("\n\n")[1] + " " + __doc__.split("\n\n")[2]).replace("\n", " ") + " " + profile,
+        description=" ".join(__doc__.split("\n\n")[i].strip() for i in paragraphs).replace("\n", " ") + " " + profile,
         rod=r, bc="clamped-free", dt=DT, duration=duration, gravity=(0.0, 0.0, -G_EARTH),
-        loads=Loads(field=CoilField(eMNS(), currents)), initial=_hanging,
+        loads=Loads(field=CoilField(eMNS(), currents)), initial=initial,
         nodes_of_interest=(10, 5), node_labels=("tip (distal magnet, distal end)", "node 6 (proximal magnet, distal end)"),
         thesis={"body": {"E": 2.5e6, "density": 1000.0, "nu": 0.5}, "magnets": ("N42 proximal", "N45 distal"),
                 "n_coils": 6, "experiment_duration_s": 340.0, "experiment_samples": 669, "bandwidth_hz": (8.33, 50.0),
@@ -203,8 +226,8 @@ def magnetic_rod_scene(name: str, currents, title: str, profile: str, duration: 
                 "damping": r.damping,
                 "rotational_damping": r.rotational_damping, "first_bending_hz": 4.148,
                 "magnet_masses": tuple(m.mass for m in r.magnets), "moments": tuple(m.moment[2] for m in r.magnets),
-                "base": "clamped at the origin hanging down (body E3 = -z)", "field_point": FIELD_POINT,
-                "currents": profile, "field_cache_tol_m": 2e-4})
+                "base": base, "field_point": FIELD_POINT, "currents": profile, "field_cache_tol_m": 2e-4,
+                **(extra or {})})
 
 
 def magnetic_rod() -> Scene:
@@ -223,4 +246,96 @@ def magnetic_rod_heldout() -> Scene:
         "at most 4 A.")
 
 
-BUILDERS = (magnetic_rod, magnetic_rod_heldout)
+# ------------------------------------------------------------------ the planar set-up of the experiment
+# The thesis's experiment (II.5.2): the rod suspended horizontally along x, steered in a plane, magnet
+# orientations about y. Here the clamp is at x = -25 mm with body E3 along +x (R_y(90 deg): body E1 along
+# -z), so that the straight rod would span the workspace's centre; gravity bends it in the x-z plane
+# (the tip sags 17 mm, 28 deg at rest). The eMNS is mirror-symmetric about the x-z plane and the fields
+# are requested in that plane at PLANAR_FIELD_POINT (near the rod's middle), so the minimum-norm currents
+# are mirror-symmetric too and the whole field on the plane lies in it: the rod moves in the x-z plane.
+PLANAR_BASE = (-0.025, 0.0, 0.0)
+PLANAR_BASE_ROTATION = ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (-1.0, 0.0, 0.0))
+PLANAR_FIELD_POINT = (0.0, 0.0, -0.008)
+_PLANAR_B, _PLANAR_ANGLES = 6e-3, (30, 60, 90, 30, -30, -60, -90, -30)
+
+
+def planar_field_basis() -> torch.Tensor:
+    """(2, C) currents (A) per tesla of field along x and along z at :data:`PLANAR_FIELD_POINT` (the eMNS's
+    minimum-norm allocation for the field alone, which is linear in the request below the current limits)."""
+    e = eMNS()
+    pt = torch.tensor([PLANAR_FIELD_POINT], dtype=torch.float64).expand(2, 1, 3)
+    unit = 1e-3 * torch.tensor([[[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]]], dtype=torch.float64)
+    return e.allocate(pt, field=unit).currents * 1e3
+
+
+class PlanarFieldCurrents:
+    """Currents for the in-plane field ``B(t) = b(t) (cos a(t), 0, sin a(t))`` at :data:`PLANAR_FIELD_POINT`
+    (angle ``a`` from +x towards +z): ``b(t) = r(t) (b0 + b1 sin(2 pi f1 t + p1))``, ``a(t) = a0 sin(2 pi f2 t + p2)
+    + a1 sin(2 pi f3 t + p3)`` with the fade-in ``r(t) = min_jerk(t / ramp)``: a field that sweeps and
+    breathes and never holds still (tesla, rad, Hz)."""
+
+    def __init__(self, b0: float, b1: float, f1: float, p1: float, a0: float, f2: float, p2: float,
+                 a1: float, f3: float, p3: float, ramp: float = 2.0):
+        vals = (b0, b1, f1, p1, a0, f2, p2, a1, f3, p3, ramp)
+        if not all(math.isfinite(v) for v in vals) or ramp <= 0 or min(f1, f2, f3) <= 0:
+            raise ValueError(f"PlanarFieldCurrents: parameters must be finite, frequencies and ramp > 0, got {vals}")
+        self.params = vals
+        self.basis = planar_field_basis()
+
+    def field(self, t) -> tuple[float, float]:
+        b0, b1, f1, p1, a0, f2, p2, a1, f3, p3, ramp = self.params
+        t = float(t)
+        from .coil_currents import min_jerk
+        b = min_jerk(t / ramp) * (b0 + b1 * math.sin(2 * math.pi * f1 * t + p1))
+        a = a0 * math.sin(2 * math.pi * f2 * t + p2) + a1 * math.sin(2 * math.pi * f3 * t + p3)
+        return b * math.cos(a), b * math.sin(a)
+
+    def __call__(self, t) -> torch.Tensor:
+        bx, bz = self.field(t)
+        return bx * self.basis[0] + bz * self.basis[1]
+
+
+def planar_setpoints(fields) -> torch.Tensor:
+    """(n, C) currents for in-plane fields ``fields`` (n, 2) = (B_x, B_z) in tesla."""
+    return torch.as_tensor(fields, dtype=torch.float64) @ planar_field_basis()
+
+
+def planar_printed_currents() -> MinJerkCurrents:
+    """Minimum-jerk moves (1.5 s, 1 s holds) through 6 mT fields in the x-z plane at 30, 60, 90, 30, -30,
+    -60, -90, -30 deg from +x (towards +z) and back to zero."""
+    a = torch.tensor(_PLANAR_ANGLES, dtype=torch.float64) * (math.pi / 180)
+    fields = torch.cat([torch.zeros(1, 2, dtype=torch.float64),
+                        _PLANAR_B * torch.stack([a.cos(), a.sin()], -1), torch.zeros(1, 2, dtype=torch.float64)])
+    n = fields.shape[0]
+    return MinJerkCurrents(planar_setpoints(fields), moves=(1.5,) * (n - 1),
+                           holds=(0.5,) + (1.0,) * (n - 2) + (2.0,))
+
+
+def planar_heldout_currents() -> PlanarFieldCurrents:
+    """A field of 5 +- 1.5 mT sweeping through +-80 deg about +x (two slow sinusoids, 0.07 and 0.19 Hz)."""
+    return PlanarFieldCurrents(5e-3, 1.5e-3, 0.11, 0.3, math.radians(55), 0.07, 0.0, math.radians(25), 0.19, 1.0)
+
+
+def _planar_scene(name: str, currents, title: str, profile: str) -> Scene:
+    base = "clamped at (-25, 0, 0) mm, horizontal along +x (body E3 = +x, E1 = -z), sagging in the x-z plane"
+    return magnetic_rod_scene(name, currents, title, profile, initial=_at_rest(PLANAR_BASE, PLANAR_BASE_ROTATION),
+                              base=base, paragraphs=(1, 2, 4),
+                              extra={"field_point": PLANAR_FIELD_POINT, "base_position": PLANAR_BASE,
+                                     "base_rotation": PLANAR_BASE_ROTATION, "plane": "x-z"})
+
+
+def magnetic_rod_planar() -> Scene:
+    return _planar_scene(
+        "magnetic_rod_planar", planar_printed_currents(),
+        "Paper II magnetic rod, planar as in the experiment: horizontal along x, set-point moves",
+        "This scene: the planar printed profile.")
+
+
+def magnetic_rod_planar_heldout() -> Scene:
+    return _planar_scene(
+        "magnetic_rod_planar_heldout", planar_heldout_currents(),
+        "Paper II magnetic rod, planar, held-out: a sweeping in-plane field (never trained on)",
+        "This scene: the planar held-out profile.")
+
+
+BUILDERS = (magnetic_rod, magnetic_rod_heldout, magnetic_rod_planar, magnetic_rod_planar_heldout)

@@ -14,7 +14,7 @@ from physics.scenes_paper2 import NodePulse, SquareTipForce
 
 PAPER1 = ["al_inplane", "al_3d", "pdms_inplane", "pdms_tip_magnet", "pdms_circular", "pdms_square_two_magnets"]
 PAPER2 = ["ellipse", "ellipse_horizontal", "square_tracking", "semicircle", "semicircle_heldout", "magnetic_rod",
-          "magnetic_rod_heldout"]
+          "magnetic_rod_heldout", "magnetic_rod_planar", "magnetic_rod_planar_heldout"]
 G = 9.81
 
 

@@ -20,6 +20,9 @@ the nodes that carry an input wrench, and a seeded generator of training variant
   holds of 0.1-1.2 s, from zero current. The held-out profile (sums of slow sinusoids, never
   holding) is of another kind. Its tracked points include two markers per magnet and its data come
   from :mod:`cmlearn.data.magnetic` (``custom``).
+* The planar magnetic rod (``magnetic_rod_planar``, the experiment's set-up): the rod horizontal along x,
+  random in-plane fields (minimum-jerk moves between fields of 0-8 mT at -100..100 deg from +x, one in
+  five back to zero). Held out: a field that sweeps and breathes and never holds.
 
 Variant 0 is always the printed scene itself: its first 60 % trains and its last 40 % is the
 "seen scene, unseen samples" evaluation of the thesis.
@@ -274,6 +277,33 @@ def _magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
     return {"currents": BatchedCurrents(profiles), "info": info}
 
 
+def _planar_magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
+    """In-plane fields at the planar scene's field point: minimum-jerk moves (0.6-2 s) between fields of
+    0-8 mT at -100..100 deg from +x (towards +z; one in five back to zero), holds of 0.1-1.2 s."""
+    from physics.coil_currents import BatchedCurrents, MinJerkCurrents
+    from physics.scenes_magnetic_rod import planar_setpoints
+    g = torch.Generator().manual_seed(seed)
+    profiles, info = [scene.loads.field.currents], [{"profile": "printed (6 mT set-points in the x-z plane)"}]
+
+    def u(a, b):
+        return a + (b - a) * float(torch.rand((), generator=g))
+    while len(profiles) < n:
+        fields, moves, holds = [(0.0, 0.0)], [], [u(0.1, 1.0)]
+        t = holds[0]
+        while t < scene.duration:
+            b, a = (0.0 if float(torch.rand((), generator=g)) < 0.2 else u(0.0, 8e-3)), math.radians(u(-100.0, 100.0))
+            fields.append((b * math.cos(a), b * math.sin(a)))
+            moves.append(u(0.6, 2.0))
+            holds.append(u(0.1, 1.2))
+            t += moves[-1] + holds[-1]
+        profiles.append(MinJerkCurrents(planar_setpoints(fields), moves, holds))
+        info.append({"fields_T": fields, "moves": moves, "holds": holds})
+    return {"currents": BatchedCurrents(profiles), "info": info}
+
+
+_MAGNET_NODES = dict(modeled=(2, 4, 5, 7, 9, 10, 11, 12, 13, 14), anchors=(0,), wrench_nodes=(4, 5, 9, 10),
+                     links={11: (4, 5), 12: (4, 5), 13: (9, 10), 14: (9, 10)}, custom="cmlearn.surrogate.magnetic")
+
 TASKS = {
     "ellipse": SurrogateTask(
         name="ellipse", scene="ellipse", delta=0.001,
@@ -295,11 +325,14 @@ TASKS = {
         heldout=("semicircle_heldout",), variants=_semicircle_variants,
         description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
                     "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
+    "magnetic_rod_planar": SurrogateTask(
+        name="magnetic_rod_planar", scene="magnetic_rod_planar", delta=0.02, **_MAGNET_NODES,
+        heldout=("magnetic_rod_planar_heldout",), variants=_planar_magnetic_variants,
+        description="Data-set IV in the experiment's planar set-up (the rod horizontal along x, steered in the x-z "
+                    "plane): the same points, links and wrench inputs as magnetic_rod, 20 ms step."),
     "magnetic_rod": SurrogateTask(
-        name="magnetic_rod", scene="magnetic_rod", delta=0.02,
-        modeled=(2, 4, 5, 7, 9, 10, 11, 12, 13, 14), anchors=(0,), wrench_nodes=(4, 5, 9, 10),
+        name="magnetic_rod", scene="magnetic_rod", delta=0.02, **_MAGNET_NODES,
         heldout=("magnetic_rod_heldout",), variants=_magnetic_variants,
-        links={11: (4, 5), 12: (4, 5), 13: (9, 10), 14: (9, 10)}, custom="cmlearn.surrogate.magnetic",
         description="Data-set IV: the two magnet blocks (end nodes 5, 6 and 10, 11 of 11, and two markers on "
                     "each 20 mm out along its E1 and E3 axes, ids 11-14), nodes 3 and 8 between them, the clamp as anchor; the magnets' "
                     "torque and force as equivalent forces on the block end nodes; 20 ms step (50 Hz)."),
