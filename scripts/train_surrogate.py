@@ -46,6 +46,7 @@ class Args:
     noise: float = 0.0  # training-noise std on the history, in units of each node's step scale
     step_weighting: str = "uniform"  # rollout-loss weights per step: uniform or inverse_square (1/h^2)
     one_step_weight: float = 0.0  # weight of a teacher-forced one-step loss term beside the rollout loss
+    closed_loop: bool = False  # training rollouts compute their own wrench (tasks whose custom module can)
     patience: int = 15
     threads: int = 2
     data_dir: str = "data"
@@ -126,12 +127,18 @@ def main(argv=None):
     t0 = time.perf_counter()
     data = dataset_for(task, a)
     t_data = time.perf_counter() - t0
-    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=a.seed)
+    inputs = wrench_fn = None
+    if a.closed_loop:
+        if not task.custom:
+            raise SystemExit(f"--closed-loop: task {task.name!r} has no wrench model of its own (its node forces are "
+                             "given, not computed from the pose)")
+        inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
+    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=a.seed, inputs=inputs)
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
-                             step_weighting=a.step_weighting, one_step_weight=a.one_step_weight)
+                             step_weighting=a.step_weighting, one_step_weight=a.one_step_weight, wrench_fn=wrench_fn)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger

@@ -135,6 +135,56 @@ def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
     assert float((lateral * axial).sum(-1).abs().max()) < 1e-9
 
 
+def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tmp_path):
+    """Closed-loop training (train_surrogate --closed-loop): the linearised field reproduces the stored wrench
+    on the data and the exact one to second order off it; the training rollout with it follows the evaluation's
+    closed loop (exact field); a dataset whose currents cannot be regenerated is refused."""
+    from cmlearn.data.magnetic import equivalent_forces, field_samples, linearised_field
+    from cmlearn.data.windows import RolloutWindows, node_wrench
+    from cmlearn.models import NodeLSTMSurrogate
+    from cmlearn.surrogate.magnetic import closed_loop, closed_loop_inputs, closed_loop_wrench
+    from cmlearn.surrogate.training import SurrogateModule
+    path = tmp_path / "mag.pt"
+    generate_dataset("magnetic_rod", 2, seed=39, out=path, duration=0.4)  # seed 39: moves from 0.1 s
+    d = load_dataset(path, task="magnetic_rod")
+    inputs = closed_loop_inputs(TASK, d)
+    assert inputs.shape == (2, 20, 2, 15) and float(inputs[1, -1, :, 3:6].norm(dim=-1).min()) > 1e-4  # tesla
+    rod, pts = TASK.base_scene().rod, d["positions"][1, -2].double()
+    I = torch.tensor([2.0, -1.0, 0.5, -2.0, 1.0, 1.5], dtype=torch.float64)
+    field = linearised_field(field_samples(TASK, rod, eMNS(), pts, I))
+    exact = lambda c: eMNS().field_and_gradient(c, I)  # noqa: E731
+    assert torch.allclose(equivalent_forces(TASK, rod, pts, field), wrench_inputs(TASK, rod, eMNS(), pts, I), atol=1e-15)
+    # the whole rod moved by 1 mm: only the field changes, and the expansion follows it (a wrong sign: twice off)
+    moved = pts + torch.tensor([1e-3, -1e-3, 5e-4], dtype=torch.float64)
+    w_exact = equivalent_forces(TASK, rod, moved, exact)
+    err = float((equivalent_forces(TASK, rod, moved, field) - w_exact).abs().max())
+    assert float((w_exact - equivalent_forces(TASK, rod, pts, exact)).abs().max()) > 10 * err, err
+    torch.manual_seed(0)
+    model = NodeLSTMSurrogate(TASK.model_config(eta=2, hidden=8))
+    torch.nn.init.normal_(model.head[-1].weight, std=0.3)  # an untrained model that responds (its head starts at 0)
+    model.set_scales([d["positions"][v] for v in range(2)], node_wrench(d["wrench"], TASK.wrench_nodes, TASK.modeled),
+                     rod.length)
+    wr = node_wrench(d["wrench"], TASK.wrench_nodes, TASK.modeled)
+    batch = RolloutWindows(d["positions"], wr, [(1, 0, 20)], eta=2, horizon=8, inputs=inputs)[-1]  # frames 10-20
+    assert len(batch) == 5
+    batch = [b[None] for b in batch]
+    module = SurrogateModule(model, horizon=8, wrench_fn=closed_loop_wrench(TASK))
+    open_loop = SurrogateModule(model, horizon=8)
+    with torch.no_grad():
+        _, pred = module.rollout_loss(batch, 8)
+        _, pred_open = open_loop.rollout_loss(batch, 8)
+        scene = replace(TASK.base_scene(), duration=0.4)
+        currents = TASK.variants(scene, 2, 39)["currents"]
+        ref = closed_loop(model, TASK, rod, eMNS(), batch[0], lambda t: currents(t)[1], 12, 8, batch[3])
+    gap_open = float((pred_open - ref).abs().max())
+    assert gap_open > 2e-7  # the untrained model's own frames give another wrench than the data's (float32: 1e-8 m)
+    assert float((pred - ref).abs().max()) < 0.05 * gap_open
+    with pytest.raises(ValueError, match="inputs"):
+        RolloutWindows(d["positions"], wr, [(1, 0, 20)], eta=2, horizon=8, inputs=inputs[:, :5])
+    with pytest.raises(ValueError, match="regenerated currents"):
+        closed_loop_inputs(TASK, {**d, "meta": {**d["meta"], "seed": 40}})
+
+
 def test_profiles_and_rod_validate_their_input():
     with pytest.raises(ValueError, match="moves"):
         MinJerkCurrents(torch.zeros(2, 6), (0.0,), (0.1, 0.1))
@@ -179,3 +229,27 @@ def test_shipped_checkpoint_reproduces_its_check_and_compare_prints_degrees(tmp_
     out = capsys.readouterr().out
     assert "distal magnet orientation: about x max" in out and "deg" in out and "static Cosserat" in out
     assert set(summary["orientation_deg"]) == {"surrogate", "cosserat"}
+
+
+def test_planar_setup_moves_the_rod_in_its_plane_and_the_cosserat_model_follows():
+    """The experiment's set-up (magnetic_rod_planar): in-plane fields at the field point, the rod steered in
+    the x-z plane, the Cosserat baseline clamped the same way."""
+    from cmlearn.surrogate.magnetic import base_pose
+    from physics.scenes_magnetic_rod import PLANAR_FIELD_POINT, planar_field_basis
+    task = get_task("magnetic_rod_planar")
+    U = planar_field_basis()
+    pt = torch.tensor([PLANAR_FIELD_POINT], dtype=torch.float64)
+    B = torch.cat([eMNS().field(pt, u) for u in U])
+    assert torch.allclose(B, torch.tensor([[1.0, 0, 0], [0, 0, 1.0]], dtype=torch.float64), atol=1e-6)  # per tesla
+    assert torch.allclose(U[:, 1], U[:, 2]) and torch.allclose(U[:, 4], U[:, 5])  # mirror-symmetric currents
+    scene = replace(get_scene("magnetic_rod_planar"), duration=2.5)  # 0.5 s hold, 1.5 s move to 6 mT at 30 deg
+    pts, _, _ = rollout(task, scene)
+    assert float(pts[..., 1].abs().max()) < 1e-9  # nothing leaves the x-z plane
+    _, R, _ = magnet_frames(task, scene.rod, pts[[0, -1]].double())
+    e3 = R[..., 2]
+    angle = torch.rad2deg(torch.atan2(e3[..., 2], e3[..., 0]))  # magnet axes from +x towards +z
+    assert -30 < float(angle[0, 1]) < -25 and -26 < float(angle[0, 0]) < -20  # sagging at rest
+    assert float((angle[1] - angle[0]).min()) > 3.0  # lifted towards the field
+    R_cos, _ = cosserat_orientations(scene.loads.field.currents, [0.0, 2.5], eMNS(), **base_pose(scene))
+    err = orientation_errors(R_cos, R).abs()
+    assert float(err[..., [0, 2]].max()) < 1e-6 and float(err[..., 1].max()) < 1.5, err  # a wrong clamp: > 20 deg

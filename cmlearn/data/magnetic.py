@@ -33,6 +33,7 @@ from physics.elastic import relative_cayley
 from physics.loads import magnet_poses
 
 __all__ = ["MARKER_OFFSET", "marker_ids", "tracked_points", "magnet_frames", "magnet_wrench", "wrench_inputs",
+           "equivalent_forces", "field_samples", "linearised_field",
            "rollout", "simulate", "block_nodes"]
 
 MARKER_OFFSET = 20e-3  # m: lever arm of the virtual markers
@@ -88,17 +89,20 @@ def magnet_frames(task, rod, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 def magnet_wrench(emns, centre: Tensor, R: Tensor, moments: Tensor, currents: Tensor):
     """Force and torque (..., K, 3) on magnets of body moments ``moments`` (K, 3) at ``centre`` with
     rotation ``R``, in ``emns`` driven by ``currents`` (..., C) (exact coil superposition)."""
+    return _dipole_wrench(R, moments, *emns.field_and_gradient(centre, currents.to(centre.dtype)))
+
+
+def _dipole_wrench(R: Tensor, moments: Tensor, B: Tensor, dB: Tensor):
     m = (R * moments.to(R.dtype)[:, None, :]).sum(-1)
-    B, dB = emns.field_and_gradient(centre, currents.to(centre.dtype))
     return (dB * m[..., :, None]).sum(-2), torch.linalg.cross(m, B, dim=-1)
 
 
-def wrench_inputs(task, rod, emns, points: Tensor, currents: Tensor) -> Tensor:
-    """Node forces (..., n_wrench, 3) in ``task.wrench_nodes`` order, from frames ``points`` (..., n_tracked, 3)
-    and currents (..., C) (module docstring)."""
+def equivalent_forces(task, rod, points: Tensor, field) -> Tensor:
+    """Node forces (..., n_wrench, 3) in ``task.wrench_nodes`` order from frames ``points`` (..., n_tracked, 3)
+    and ``field(centres) -> (B, dB)`` at the magnet block centres (..., K, 3) (module docstring)."""
     c, R, d = magnet_frames(task, rod, points)
-    moments = torch.tensor([mg.moment for mg in rod.magnets], dtype=points.dtype)
-    f, tau = magnet_wrench(emns, c, R, moments, currents)
+    moments = torch.tensor([mg.moment for mg in rod.magnets], dtype=points.dtype, device=points.device)
+    f, tau = _dipole_wrench(R, moments, *field(c))
     couple = torch.linalg.cross(tau, d, dim=-1) / (d * d).sum(-1, keepdim=True)
     fa, fb = 0.5 * f - couple, 0.5 * f + couple
     by_node = {}
@@ -106,6 +110,29 @@ def wrench_inputs(task, rod, emns, points: Tensor, currents: Tensor) -> Tensor:
         by_node[a] = by_node.get(a, 0) + fa[..., k, :]
         by_node[b] = by_node.get(b, 0) + fb[..., k, :]
     return torch.stack([by_node[n] for n in task.wrench_nodes], -2)
+
+
+def wrench_inputs(task, rod, emns, points: Tensor, currents: Tensor) -> Tensor:
+    """Node forces (..., n_wrench, 3) in ``task.wrench_nodes`` order, from frames ``points`` (..., n_tracked, 3)
+    and currents (..., C), with the exact eMNS field (module docstring)."""
+    return equivalent_forces(task, rod, points, lambda c: emns.field_and_gradient(c, currents.to(c.dtype)))
+
+
+def field_samples(task, rod, emns, points: Tensor, currents: Tensor) -> Tensor:
+    """The field along trajectories, for :func:`linearised_field`: (..., K, 15) = the block centres, ``B`` and
+    ``dB_i/dx_j`` (flattened) at them, from frames ``points`` (..., n_tracked, 3) and currents (..., C)."""
+    c = magnet_frames(task, rod, points)[0]
+    B, dB = emns.field_and_gradient(c, currents.to(c.dtype))
+    return torch.cat([c, B, dB.flatten(-2)], -1)
+
+
+def linearised_field(samples: Tensor):
+    """``field(c) -> (B, dB)`` expanded to first order about :func:`field_samples` ``samples`` (..., K, 15):
+    ``B(c) = B0 + dB0 (c - c0)`` and ``dB(c) = dB0`` (as :class:`physics.coil_currents.CoilField` does
+    within its 0.2 mm tolerance); cheap and differentiable, for training rollouts that compute their own
+    wrench near a recorded trajectory."""
+    c0, B0, dB0 = samples[..., :3], samples[..., 3:6], samples[..., 6:].unflatten(-1, (3, 3))
+    return lambda c: (B0 + (dB0 @ (c - c0)[..., None])[..., 0], dB0)
 
 
 def currents_series(currents, n: int, delta: float, offset: float = 0.5) -> Tensor:

@@ -1,5 +1,6 @@
-"""Training windows: (history of eta + 1 frames, the next H frames, the node forces over them, and the
-trajectory's first frame as the reference shape)."""
+"""Training windows: (history of eta + 1 frames, the next H frames, the node forces over them, the
+trajectory's first frame as the reference shape and, where given, per-step inputs of the task's own
+wrench model over them)."""
 from __future__ import annotations
 
 import torch
@@ -31,10 +32,15 @@ def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, va
 
 
 class RolloutWindows(Dataset):
-    """Every window start inside the given ``ranges`` [(variant, first_frame, last_frame)]."""
+    """Every window start inside the given ``ranges`` [(variant, first_frame, last_frame)]. ``inputs``
+    (V, T-1, ...), optional: what a closed-loop training rollout computes each step's wrench from (e.g.
+    :func:`cmlearn.surrogate.magnetic.closed_loop_inputs`), windowed like ``wrench``."""
 
-    def __init__(self, positions: Tensor, wrench: Tensor, ranges, eta: int, horizon: int):
-        self.positions, self.wrench = positions, wrench
+    def __init__(self, positions: Tensor, wrench: Tensor, ranges, eta: int, horizon: int,
+                 inputs: Tensor | None = None):
+        if inputs is not None and inputs.shape[:2] != wrench.shape[:2]:
+            raise ValueError(f"inputs {tuple(inputs.shape)} must match wrench {tuple(wrench.shape)} in (V, T-1)")
+        self.positions, self.wrench, self.inputs = positions, wrench, inputs
         self.W, self.H = eta + 1, horizon
         self.index = []
         for v, a, b in ranges:
@@ -49,4 +55,5 @@ class RolloutWindows(Dataset):
     def __getitem__(self, i):
         v, t = self.index[i]
         p = self.positions[v]
-        return p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H], p[0]
+        out = (p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H], p[0])
+        return out if self.inputs is None else (*out, self.inputs[v, t:t + self.H])

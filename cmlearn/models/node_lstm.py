@@ -201,10 +201,13 @@ class NodeLSTMSurrogate(nn.Module):
         pk = hist[:, -1, self.idx_modeled]
         return 2 * pk - hist[:, -2, self.idx_modeled] + a
 
-    def rollout(self, hist: Tensor, wrench: Tensor, ref: Tensor, anchors: Tensor | None = None) -> Tensor:
+    def rollout(self, hist: Tensor, wrench: Tensor, ref: Tensor, anchors: Tensor | None = None,
+                wrench_fn=None) -> Tensor:
         """Free-running rollout of H steps from ``hist`` (B, eta+1, n_tracked, 3) with node forces ``wrench``
         (B, H, K, 3) and reference shape ``ref`` (B, n_tracked, 3); anchor nodes follow ``anchors``
-        (B, H, n_tracked, 3) where given, else stay put. Returns (B, H, n_tracked, 3)."""
+        (B, H, n_tracked, 3) where given, else stay put. ``wrench_fn(h, frame) -> (B, K, 3)``, where given,
+        replaces ``wrench[:, h]`` by forces computed from the last frame (closed loop). Returns
+        (B, H, n_tracked, 3)."""
         W = self.config.eta + 1
         if hist.shape[1] != W:
             raise ValueError(f"hist must hold eta + 1 = {W} frames, got {hist.shape[1]}")
@@ -212,7 +215,8 @@ class NodeLSTMSurrogate(nn.Module):
         out = []
         for h in range(wrench.shape[1]):
             nxt = anchors[:, h] if anchors is not None else frames[-1]
-            pk = self(torch.stack(frames[-W:], 1), wrench[:, h], ref)
+            w = wrench[:, h] if wrench_fn is None else wrench_fn(h, frames[-1])
+            pk = self(torch.stack(frames[-W:], 1), w, ref)
             nxt = nxt.index_copy(1, self.idx_modeled, pk)
             frames.append(nxt)
             out.append(nxt)

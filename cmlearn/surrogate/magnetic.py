@@ -4,7 +4,8 @@ in degrees and the static Cosserat model as the baseline, against the LGVI.
 Orientation error. For a predicted magnet rotation ``R_p`` and the reference ``R_r`` (both from the
 block's tracked points, :func:`cmlearn.data.magnetic.magnet_frames`), the error is the rotation vector
 ``log(R_p R_r^T)`` in world coordinates, in degrees: its x, y, z components are the error angles about
-the world axes (the rod hangs along -z, so x and y are the swing, z the turn about the vertical).
+the world axes (where the rod hangs along -z, x and y are the swing, z the turn about the vertical; in
+the planar set-up, horizontal along x and steered in the x-z plane, y is the swing, as in the thesis).
 Per axis we report the maximum and the mean of the absolute value over the samples, as Table II.1.
 
 Free-running means closed loop: each step's input wrench (the magnets' torque and force) is computed
@@ -25,13 +26,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from cmlearn.data.magnetic import magnet_frames, rollout, simulate, tracked_points, wrench_inputs
+from cmlearn.data.magnetic import (currents_series, equivalent_forces, field_samples, linearised_field, magnet_frames,
+                                   rollout, simulate, tracked_points, wrench_inputs)
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
 from .evaluate import interest_slots, one_step
 
-__all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "cosserat_orientations",
+__all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "cosserat_orientations", "base_pose",
+           "closed_loop_inputs", "closed_loop_wrench",
            "evaluate", "run_scene", "short_check", "compare_scene"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
@@ -57,18 +60,40 @@ def orientation_stats(err: Tensor) -> dict:
 def closed_loop(model, task, rod, emns, hist: Tensor, currents, k0: int, n_steps: int, ref: Tensor) -> Tensor:
     """Free-running frames (B, n_steps, n_tracked, 3) after ``hist`` (B, eta+1, n_tracked, 3) ending at frame
     ``k0``; the step from frame k uses the currents at ``(k + 1/2) delta`` and the wrench of frame k."""
-    W, idx = model.config.eta + 1, model.idx_modeled
-    frames = list(hist.float().unbind(1))
-    out = []
-    for h in range(n_steps):
-        t = torch.tensor((k0 + h + 0.5) * task.delta, dtype=torch.float64)
-        I = torch.as_tensor(currents(t), dtype=torch.float64)
-        w = wrench_inputs(task, rod, emns, frames[-1].double(), I).float()
-        pk = model(torch.stack(frames[-W:], 1), node_wrench(w, task.wrench_nodes, task.modeled), ref)
-        nxt = frames[-1].index_copy(1, idx, pk)
-        frames.append(nxt)
-        out.append(nxt)
-    return torch.stack(out, 1)
+    def wrench_fn(h, frame):
+        I = torch.as_tensor(currents(torch.tensor((k0 + h + 0.5) * task.delta, dtype=torch.float64)), dtype=torch.float64)
+        return node_wrench(wrench_inputs(task, rod, emns, frame.double(), I).float(), task.wrench_nodes, task.modeled)
+    return model.rollout(hist.float(), torch.zeros(hist.shape[0], n_steps, 0), ref, wrench_fn=wrench_fn)
+
+
+def closed_loop_inputs(task, data: dict) -> Tensor:
+    """For closed-loop training (:class:`~cmlearn.surrogate.training.SurrogateModule` ``wrench_fn``): the field
+    samples (V, T-1, K, 15) of a dataset's trajectories (:func:`cmlearn.data.magnetic.field_samples` at frame
+    k with the currents at ``(k + 1/2) delta``, the variants' currents regenerated from the task and seed),
+    checked against the dataset's stored wrench."""
+    meta = data["meta"]
+    scene = replace(task.base_scene(), duration=meta["duration"])
+    currents = task.variants(scene, meta["n_variants"], meta["seed"])["currents"]
+    pos = data["positions"][:, :-1].double()
+    I = currents_series(currents, pos.shape[1], task.delta).movedim(0, -2)  # (V, T-1, C)
+    samples = field_samples(task, scene.rod, scene.loads.field.emns, pos, I)
+    W = equivalent_forces(task, scene.rod, pos, linearised_field(samples))
+    scale = float(data["wrench"].abs().max())
+    if not float((W - data["wrench"].double()).abs().max()) <= 1e-4 * scale:
+        raise ValueError(f"the regenerated currents of task {task.name!r} (seed {meta['seed']}) do not give the "
+                         "dataset's wrench: regenerate the dataset with this version")
+    return samples.float()
+
+
+def closed_loop_wrench(task):
+    """``wrench_fn(frame, samples)`` for closed-loop training: the node forces (B, K, 3) of frames (B, n_tracked, 3)
+    in the field linearised about :func:`closed_loop_inputs` samples (B, n_magnets, 15)."""
+    rod = task.base_scene().rod
+
+    def wrench_fn(frame, samples):
+        w = equivalent_forces(task, rod, frame, linearised_field(samples))
+        return node_wrench(w, task.wrench_nodes, task.modeled)
+    return wrench_fn
 
 
 def _hook(field_model, I: Tensor):
@@ -81,9 +106,20 @@ def _hook(field_model, I: Tensor):
     return hook
 
 
-def cosserat_orientations(currents, times, field_model, n_nodes: int = 13):
+def base_pose(scene) -> dict:
+    """The clamp of a magnetic-rod scene as keywords of the Cosserat solve (``{}``: hanging from the origin,
+    the Cosserat scene's own base)."""
+    if "base_rotation" not in scene.chosen:
+        return {}
+    from physics.lie import matrix_to_quat
+    R = torch.tensor(scene.chosen["base_rotation"], dtype=torch.float64)
+    return {"base_position": scene.chosen["base_position"], "base_quaternion": matrix_to_quat(R)}
+
+
+def cosserat_orientations(currents, times, field_model, n_nodes: int = 13, **pose):
     """Magnet rotations (T, 2, 3, 3) of the static Cosserat rod at ``times`` (s) with ``currents(t)``, each
-    solve warm-started from the previous one; also the solver wall time (s)."""
+    solve warm-started from the previous one; also the solver wall time (s). ``pose``: the clamp
+    (:func:`base_pose`)."""
     from physics.scenes_cosserat import paper2_magnetic_rod
     sc = paper2_magnetic_rod(n_nodes)
     solver = sc.solver()
@@ -92,7 +128,7 @@ def cosserat_orientations(currents, times, field_model, n_nodes: int = 13):
     t0 = time.perf_counter()
     for t in times:
         I = torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
-        sol = sc.solve(solver, field=_hook(field_model, I), init=sol, load_steps=4 if sol is None else 1)
+        sol = sc.solve(solver, field=_hook(field_model, I), init=sol, load_steps=4 if sol is None else 1, **pose)
         out.append(sol.R[..., nodes, :, :])
     return torch.stack(out), time.perf_counter() - t0
 
@@ -115,7 +151,7 @@ def cached_cosserat(task, scene, times, data_dir: str | Path | None):
         if path.exists():
             blob = torch.load(path, weights_only=True)
             return blob["R"], float(blob["wall_s"])
-    R, wall = cosserat_orientations(scene.loads.field.currents, times, scene.loads.field.emns)
+    R, wall = cosserat_orientations(scene.loads.field.currents, times, scene.loads.field.emns, **base_pose(scene))
     if path is not None:
         import io
 
@@ -247,7 +283,8 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
     R_ref = magnet_frames(task, rod, p_ref[1:].double())[1]
     orient = {"surrogate": orientation_stats(orientation_errors(magnet_frames(task, rod, p_sur[1:].double())[1], R_ref))}
-    R_cos, wall_cos = cosserat_orientations(scene.loads.field.currents, t[1:].tolist(), scene.loads.field.emns)
+    R_cos, wall_cos = cosserat_orientations(scene.loads.field.currents, t[1:].tolist(), scene.loads.field.emns,
+                                            **base_pose(scene))
     orient["cosserat"] = orientation_stats(orientation_errors(R_cos, R_ref))
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
             "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur, "cosserat_wall_s": wall_cos,

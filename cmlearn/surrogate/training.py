@@ -3,7 +3,9 @@
 The loss is the free-running rollout error over a horizon that grows from 1 step (the one-step
 fit) to ``horizon`` steps during training (a curriculum), with optional training noise on the
 history (:meth:`SurrogateModule.noisy`), so that the model learns to stay accurate when it feeds
-on its own predictions, not only one step ahead. Errors are in units of the mean second-difference scale, the
+on its own predictions, not only one step ahead. With ``wrench_fn`` (closed-loop training, e.g. the
+magnetic rod, whose wrench depends on the magnets' pose) the rollout also computes each step's input
+wrench from its own last frame, as the free-running surrogate does. Errors are in units of the mean second-difference scale, the
 same for every node, so the loss weighs millimetres equally along the rod.
 """
 from __future__ import annotations
@@ -20,8 +22,9 @@ __all__ = ["SurrogateDataModule", "SurrogateModule"]
 
 class SurrogateDataModule(L.LightningDataModule):
     def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
-                 num_workers: int = 0, seed: int = 0):
+                 num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None):
         super().__init__()
+        self.inputs = inputs  # (V, T-1, ...) per-step inputs of a closed-loop wrench_fn
         meta = dataset["meta"]
         self.positions = dataset["positions"]
         self.wrench = node_wrench(dataset["wrench"], meta["wrench_nodes"], meta["modeled"])
@@ -34,7 +37,7 @@ class SurrogateDataModule(L.LightningDataModule):
         return [self.positions[v, a:b + 1] for v, a, b in self.ranges["train"]]
 
     def _loader(self, split: str, shuffle: bool):
-        ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon)
+        ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs)
         g = torch.Generator().manual_seed(self.seed)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
                           num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
@@ -49,13 +52,13 @@ class SurrogateDataModule(L.LightningDataModule):
 class SurrogateModule(L.LightningModule):
     def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
                  weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0,
-                 step_weighting: str = "uniform", one_step_weight: float = 0.0):
+                 step_weighting: str = "uniform", one_step_weight: float = 0.0, wrench_fn=None):
         super().__init__()
         if step_weighting not in ("uniform", "inverse_square"):
             raise ValueError(f"step_weighting must be 'uniform' or 'inverse_square', got {step_weighting!r}")
         if not one_step_weight >= 0:
             raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
-        self.model = model
+        self.model, self.wrench_fn = model, wrench_fn  # wrench_fn(frame, inputs_h) -> (B, K, 3): closed loop
         self.noise, self.step_weighting, self.one_step_weight = noise, step_weighting, one_step_weight
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
@@ -70,11 +73,16 @@ class SurrogateModule(L.LightningModule):
         """Mean squared rollout error over ``horizon`` steps. ``inverse_square`` divides the error at
         step h by h: a bias in the predicted second difference grows as h^2 along a rollout, so
         uniform weights let the last steps' drift dominate the loss and the fit of each single step
-        (what the rollout is made of) hardly counts; divided by h, every step weighs about alike."""
-        hist, future, wrench, ref = batch
+        (what the rollout is made of) hardly counts; divided by h, every step weighs about alike.
+        Closed loop (``wrench_fn`` and a batch with inputs): each step's wrench from the last frame."""
+        hist, future, wrench, ref = batch[:4]
         m = self.model
         idx = m.idx_modeled
-        pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon])
+        fn = None
+        if self.wrench_fn is not None and len(batch) > 4:
+            inputs = batch[4]
+            fn = lambda h, frame: self.wrench_fn(frame, inputs[:, h])  # noqa: E731
+        pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon], wrench_fn=fn)
         err = self.scaled_error(pred[:, :, idx], future[:, :horizon, idx])
         if weighting == "inverse_square":
             err = err / torch.arange(1, horizon + 1, dtype=err.dtype, device=err.device)[:, None, None]
@@ -87,7 +95,7 @@ class SurrogateModule(L.LightningModule):
     def one_step_loss(self, batch, horizon: int):
         """Mean squared one-step (teacher-forced) error over the window's first ``horizon`` frames: each
         predicted from the true history, in the rollout loss's units."""
-        hist, future, wrench, ref = batch
+        hist, future, wrench, ref = batch[:4]
         m = self.model
         frames = torch.cat([hist, future[:, :horizon]], 1)
         windows = frames.unfold(1, hist.shape[1], 1)[:, :horizon].movedim(-1, 2)  # (B, horizon, W, n_tracked, 3)
