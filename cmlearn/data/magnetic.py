@@ -19,6 +19,9 @@ enter the node model as the statically equivalent forces on the block's end node
 which carry [tau, f] exactly (``tau`` is normal to an axial moment, so ``tau = d x (f_b - f_a) / 2`` and
 ``f = f_a + f_b``). The wrench of step k -> k+1 is a function of frame k and the currents at
 ``(k + 1/2) delta`` alone, so a free-running surrogate computes it from its own last prediction.
+Closed-loop training does the same in the field expanded to first order about the recorded block
+centres (:func:`field_samples`, :func:`linearised_field`), which is cheap and differentiable; the
+evaluation uses the exact field.
 """
 from __future__ import annotations
 
