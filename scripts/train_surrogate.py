@@ -124,14 +124,14 @@ def main(argv=None):
     torch.set_num_threads(a.threads)
     L.seed_everything(a.seed, workers=True)
     task = get_task(a.task)
+    if a.closed_loop and not task.custom:
+        raise SystemExit(f"--closed-loop: task {task.name!r} has no wrench model of its own (its node forces are "
+                         "given, not computed from the pose)")
     t0 = time.perf_counter()
     data = dataset_for(task, a)
     t_data = time.perf_counter() - t0
     inputs = wrench_fn = None
     if a.closed_loop:
-        if not task.custom:
-            raise SystemExit(f"--closed-loop: task {task.name!r} has no wrench model of its own (its node forces are "
-                             "given, not computed from the pose)")
         inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=a.seed, inputs=inputs)
     model = build_model(task, a)

@@ -61,6 +61,18 @@ def test_bench_surrogate_quick(tmp_path):
     assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1
 
 
+def test_train_surrogate_quick_closed_loop(tmp_path):
+    res = run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "magnetic_rod", "--closed-loop",
+                      "--threads", "1", "--out", "ck.pt"], tmp_path)
+    meta = json.loads((tmp_path / "ck.json").read_text())
+    assert res["checkpoint"].endswith("ck.pt") and meta["args"]["closed_loop"] and "--closed-loop" in meta["command"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle",
+                          "--closed-loop"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode != 0 and "--closed-loop: task 'semicircle'" in out.stderr
+    assert not list((tmp_path / "data").glob("semicircle*"))  # refused before generating any data
+
+
 def test_surrogate_report(tmp_path):
     res = run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
     assert (tmp_path / "s.md").exists() and len(res["rows"]) >= 3
