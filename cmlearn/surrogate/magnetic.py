@@ -33,9 +33,8 @@ from cmlearn.eval.metrics import axis_errors, rmse_t
 
 from .evaluate import interest_slots, one_step
 
-__all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "cosserat_orientations", "base_pose",
-           "closed_loop_inputs", "closed_loop_wrench",
-           "evaluate", "run_scene", "short_check", "compare_scene"]
+__all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
+           "closed_loop_wrench", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 
@@ -61,7 +60,8 @@ def closed_loop(model, task, rod, emns, hist: Tensor, currents, k0: int, n_steps
     """Free-running frames (B, n_steps, n_tracked, 3) after ``hist`` (B, eta+1, n_tracked, 3) ending at frame
     ``k0``; the step from frame k uses the currents at ``(k + 1/2) delta`` and the wrench of frame k."""
     def wrench_fn(h, frame):
-        I = torch.as_tensor(currents(torch.tensor((k0 + h + 0.5) * task.delta, dtype=torch.float64)), dtype=torch.float64)
+        t = torch.tensor((k0 + h + 0.5) * task.delta, dtype=torch.float64)
+        I = torch.as_tensor(currents(t), dtype=torch.float64)
         return node_wrench(wrench_inputs(task, rod, emns, frame.double(), I).float(), task.wrench_nodes, task.modeled)
     return model.rollout(hist.float(), torch.zeros(hist.shape[0], n_steps, 0), ref, wrench_fn=wrench_fn)
 

@@ -5,8 +5,8 @@ fit) to ``horizon`` steps during training (a curriculum), with optional training
 history (:meth:`SurrogateModule.noisy`), so that the model learns to stay accurate when it feeds
 on its own predictions, not only one step ahead. With ``wrench_fn`` (closed-loop training, e.g. the
 magnetic rod, whose wrench depends on the magnets' pose) the rollout also computes each step's input
-wrench from its own last frame, as the free-running surrogate does. Errors are in units of the mean second-difference scale, the
-same for every node, so the loss weighs millimetres equally along the rod.
+wrench from its own last frame, as the free-running surrogate does. Errors are in units of the mean
+second-difference scale, the same for every node, so the loss weighs millimetres equally along the rod.
 """
 from __future__ import annotations
 
