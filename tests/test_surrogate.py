@@ -206,6 +206,30 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
         load_checkpoint(tmp_path / "other.pt")
 
 
+def test_a_runaway_rollout_is_a_divergence_error_naming_step_time_and_node():
+    from dataclasses import replace
+
+    from cmlearn.surrogate import SurrogateDivergence
+    from cmlearn.surrogate.engine import check_rollout
+    engine = Surrogate.load(ROOT / "checkpoints" / "square_tracking.pt")
+    task = engine.task
+    scene = replace(task.base_scene(), duration=0.5)
+    pts, _ = engine.run_scene(scene)  # the shipped model: no error
+    assert float((pts - pts[:1]).norm(dim=-1).max()) > 0.005  # and it moved
+    bad = pts.clone()
+    bad[7, 3, 0] = float("nan")
+    with pytest.raises(SurrogateDivergence, match=r"step 7 \(t = 0.070 s\): tracked node 3 is nan m"):
+        check_rollout(bad, task, scene.rod.length)
+    bad = pts.clone()
+    bad[12:, 5, 2] += 3 * scene.rod.length  # a node three rod lengths off: no rod can do that
+    with pytest.raises(SurrogateDivergence, match="step 12 .* tracked node 5 is"):
+        check_rollout(bad, task, scene.rod.length)
+    with torch.no_grad():
+        engine.model.head[-1].bias.add_(1e3)  # a model that accelerates every node: it runs away
+    with pytest.raises(SurrogateDivergence, match="'square_tracking' surrogate diverged at step"):
+        engine.run_scene(scene)
+
+
 def test_loading_a_checkpoint_needs_no_lightning(tmp_path):
     task = get_task("semicircle")
     path = save_checkpoint(tmp_path / "m.pt", tiny_model(task), {"task": "semicircle"})

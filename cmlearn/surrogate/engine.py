@@ -22,7 +22,25 @@ from physics.programs import compile_program
 
 from .checkpoint import CheckpointError, load_checkpoint
 
-__all__ = ["Surrogate"]
+__all__ = ["Surrogate", "SurrogateDivergence", "check_rollout"]
+
+
+class SurrogateDivergence(RuntimeError):
+    """A free-running surrogate rollout went non-finite or left every shape the rod can take."""
+
+
+def check_rollout(points: Tensor, task: SurrogateTask, length: float) -> None:
+    """Raise :class:`SurrogateDivergence`, naming the first step, its time and the tracked node, where a
+    rollout's points (T, n_tracked, 3) are non-finite or some point has moved more than twice the rod's
+    ``length`` plus 5 cm (markers off the rod included) from where it started: a rod clamped at one end
+    cannot move any of its points farther."""
+    d = (points - points[:1]).norm(dim=-1)
+    bad = ~torch.isfinite(d) | (d > 2 * length + 0.05)
+    if bool(bad.any()):
+        k, i = (int(x) for x in bad.nonzero()[0])
+        raise SurrogateDivergence(
+            f"the {task.name!r} surrogate diverged at step {k} (t = {k * task.delta:.3f} s): tracked node "
+            f"{task.tracked[i]} is {float(d[k, i]):.3g} m from its start, more than a {length:g} m rod allows")
 
 
 class Surrogate:
@@ -89,10 +107,13 @@ class Surrogate:
     def run_scene(self, scene, duration: float | None = None) -> tuple[Tensor, float]:
         """Free-running prediction of the tracked nodes (T, n_tracked, 3), T = steps + 1 (from rest in the
         scene's initial shape), and the wall time of the rollout including the force evaluation. A task with
-        its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead."""
+        its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead.
+        :class:`SurrogateDivergence` where the rollout runs away (:func:`check_rollout`)."""
         hook = self.task.hook("run_scene")
         if hook is not None:
-            return hook(self, scene, duration)
+            out = hook(self, scene, duration)
+            check_rollout(out[0], self.task, scene.rod.length)
+            return out
         n = int(round((duration or scene.duration) / self.task.delta))
         p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
         t0 = time.perf_counter()
@@ -106,7 +127,9 @@ class Surrogate:
             frames.append(nxt)
             out.append(nxt)
         wall = time.perf_counter() - t0
-        return torch.stack(out), wall
+        out = torch.stack(out)
+        check_rollout(out, self.task, scene.rod.length)
+        return out, wall
 
     @torch.no_grad()
     def step_latency(self, n: int = 2000, warmup: int = 50) -> float:
