@@ -325,17 +325,17 @@ TASKS = {
         heldout=("semicircle_heldout",), variants=_semicircle_variants,
         description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
                     "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
-    "magnetic_rod_planar": SurrogateTask(
-        name="magnetic_rod_planar", scene="magnetic_rod_planar", delta=0.02, **_MAGNET_NODES,
-        heldout=("magnetic_rod_planar_heldout",), variants=_planar_magnetic_variants,
-        description="Data-set IV in the experiment's planar set-up (the rod horizontal along x, steered in the x-z "
-                    "plane): the same points, links and wrench inputs as magnetic_rod, 20 ms step."),
     "magnetic_rod": SurrogateTask(
         name="magnetic_rod", scene="magnetic_rod", delta=0.02, **_MAGNET_NODES,
         heldout=("magnetic_rod_heldout",), variants=_magnetic_variants,
         description="Data-set IV: the two magnet blocks (end nodes 5, 6 and 10, 11 of 11, and two markers on "
                     "each 20 mm out along its E1 and E3 axes, ids 11-14), nodes 3 and 8 between them, the clamp as anchor; the magnets' "
                     "torque and force as equivalent forces on the block end nodes; 20 ms step (50 Hz)."),
+    "magnetic_rod_planar": SurrogateTask(
+        name="magnetic_rod_planar", scene="magnetic_rod_planar", delta=0.02, **_MAGNET_NODES,
+        heldout=("magnetic_rod_planar_heldout",), variants=_planar_magnetic_variants,
+        description="Data-set IV in the experiment's planar set-up (the rod horizontal along x, steered in the x-z "
+                    "plane): the same points, links and wrench inputs as magnetic_rod, 20 ms step."),
 }
 
 
