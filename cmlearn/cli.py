@@ -224,13 +224,16 @@ def _report(scene, s: dict) -> None:
 
 def _cmd_compare(args) -> int:
     from .compare import run_compare
-    from .surrogate import CheckpointError
+    from .surrogate import CheckpointError, SurrogateDivergence
 
     try:
         run_compare(args.scene, args.checkpoint, args.duration, args.out)
     except (KeyError, FileNotFoundError, CheckpointError) as e:
         print(f"cmlearn compare: {e.args[0] if e.args else e}", file=sys.stderr)
         return 2
+    except SurrogateDivergence as e:
+        print(f"cmlearn compare: {e}", file=sys.stderr)
+        return 1
     return 0
 
 
