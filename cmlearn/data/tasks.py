@@ -253,52 +253,50 @@ def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -
 _CURRENT_LIMIT = 4.0  # A per coil in training profiles
 
 
-def _magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
+def _setpoint_variants(scene: Scene, n: int, seed: int, label: str, zero, draw, to_currents, info_key: str,
+                       info_of) -> dict:
+    """Variant 0 the printed profile; the others from ``zero``: minimum-jerk moves (0.6-2 s) between set-points
+    ``draw(back, u, g)`` (``back``, one in five: back to zero), holds of 0.1-1.2 s (the first 0.1-1 s), until
+    the scene's end. ``to_currents(points) -> (n, C)`` A; ``info_of(points)`` is stored under ``info_key``."""
     from physics.coil_currents import BatchedCurrents, MinJerkCurrents
     g = torch.Generator().manual_seed(seed)
-    printed = scene.loads.field.currents
-    C = printed(0.0).shape[-1]
-    profiles, info = [printed], [{"profile": "printed (set-point moves to 5 mT fields)"}]
+    profiles, info = [scene.loads.field.currents], [{"profile": label}]
 
     def u(a, b):
         return a + (b - a) * float(torch.rand((), generator=g))
     while len(profiles) < n:
-        pts, moves, holds = [torch.zeros(C, dtype=torch.float64)], [], [u(0.1, 1.0)]
+        pts, moves, holds = [zero], [], [u(0.1, 1.0)]
         t = holds[0]
         while t < scene.duration:
-            back = float(torch.rand((), generator=g)) < 0.2
-            pts.append(torch.zeros(C, dtype=torch.float64) if back else
-                       (torch.rand(C, generator=g, dtype=torch.float64) * 2 - 1) * _CURRENT_LIMIT)
+            pts.append(draw(float(torch.rand((), generator=g)) < 0.2, u, g))
             moves.append(u(0.6, 2.0))
             holds.append(u(0.1, 1.2))
             t += moves[-1] + holds[-1]
-        profiles.append(MinJerkCurrents(torch.stack(pts), moves, holds))
-        info.append({"setpoints": torch.stack(pts).tolist(), "moves": moves, "holds": holds})
+        profiles.append(MinJerkCurrents(to_currents(pts), moves, holds))
+        info.append({info_key: info_of(pts), "moves": moves, "holds": holds})
     return {"currents": BatchedCurrents(profiles), "info": info}
+
+
+def _magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
+    """Coil currents drawn uniformly within +-4 A per coil as set-points (:func:`_setpoint_variants`)."""
+    zero = torch.zeros(scene.loads.field.currents(0.0).shape[-1], dtype=torch.float64)
+
+    def draw(back, u, g):
+        return zero if back else (torch.rand(zero.shape, generator=g, dtype=torch.float64) * 2 - 1) * _CURRENT_LIMIT
+    return _setpoint_variants(scene, n, seed, "printed (set-point moves to 5 mT fields)", zero, draw, torch.stack,
+                              "setpoints", lambda pts: torch.stack(pts).tolist())
 
 
 def _planar_magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
-    """In-plane fields at the planar scene's field point: minimum-jerk moves (0.6-2 s) between fields of
-    0-8 mT at -100..100 deg from +x (towards +z; one in five back to zero), holds of 0.1-1.2 s."""
-    from physics.coil_currents import BatchedCurrents, MinJerkCurrents
+    """In-plane fields at the planar scene's field point as set-points (:func:`_setpoint_variants`): 0-8 mT
+    at -100..100 deg from +x (towards +z)."""
     from physics.scenes_magnetic_rod import planar_setpoints
-    g = torch.Generator().manual_seed(seed)
-    profiles, info = [scene.loads.field.currents], [{"profile": "printed (6 mT set-points in the x-z plane)"}]
 
-    def u(a, b):
-        return a + (b - a) * float(torch.rand((), generator=g))
-    while len(profiles) < n:
-        fields, moves, holds = [(0.0, 0.0)], [], [u(0.1, 1.0)]
-        t = holds[0]
-        while t < scene.duration:
-            b, a = (0.0 if float(torch.rand((), generator=g)) < 0.2 else u(0.0, 8e-3)), math.radians(u(-100.0, 100.0))
-            fields.append((b * math.cos(a), b * math.sin(a)))
-            moves.append(u(0.6, 2.0))
-            holds.append(u(0.1, 1.2))
-            t += moves[-1] + holds[-1]
-        profiles.append(MinJerkCurrents(planar_setpoints(fields), moves, holds))
-        info.append({"fields_T": fields, "moves": moves, "holds": holds})
-    return {"currents": BatchedCurrents(profiles), "info": info}
+    def draw(back, u, g):
+        b, a = (0.0 if back else u(0.0, 8e-3)), math.radians(u(-100.0, 100.0))
+        return b * math.cos(a), b * math.sin(a)
+    return _setpoint_variants(scene, n, seed, "printed (6 mT set-points in the x-z plane)", (0.0, 0.0), draw,
+                              planar_setpoints, "fields_T", list)
 
 
 _MAGNET_NODES = dict(modeled=(2, 4, 5, 7, 9, 10, 11, 12, 13, 14), anchors=(0,), wrench_nodes=(4, 5, 9, 10),
