@@ -17,8 +17,18 @@ normal of the plane of the curve, and the printed orientations are reconciled as
   1.8 deg, so the printed value is most likely the last node's frame counted one element on).
 
 No gravity: the thesis lists none, and a 55 cm rod of E = 10 MPa and radius 1 cm would sag by
-about 45 cm under its own weight. No damping (none is given). Material values not printed for
-Simulation I are taken from Simulation II (radius 1 cm, E 10 MPa, rho 1000, nu 0.3).
+about 45 cm under its own weight. No damping (none is given).
+
+Simulation I's rod is printed only in a figure; its text gives the time step (1e-3 s, "the maximum
+constant time step for this simulation") and 50001 samples, i.e. 50 s. Of the printed rods only
+Simulation III's (radius 1 cm, E 10 kPa, rho 1000, nu 0.3; the text calls both "a cylindrical rod")
+is stable at that step on the loop's 23 mm elements: the explicit update needs dt below 5.0 ms
+for it, but 0.16 ms for Simulation II's E = 10 MPa (1e-3 s allows at most E = 0.25 MPa). So the
+ellipse uses that rod, dt 1e-3 s and 50 s. Undamped and unloaded, the loop's motion only scales in
+time with sqrt(rho/E); what the choice fixes is how many swings the 50 s hold (about 4.5) and where
+the 60 % cut falls. An earlier layout ran E = 10 MPa for 5 s at dt 1e-4 s: 32 times as many swings,
+by when the loop had turned chaotic (a 10 um nudge at the cut grew to 3.7 mm; at 10 kPa over 50 s
+it grows to 19 um, ``docs/rollout_sensitivity.md``).
 """
 from __future__ import annotations
 
@@ -111,7 +121,8 @@ _ELLIPSE_N = 58
 # The one rod of Simulation I: equal elements whose length closes the 0.2 m x 0.6 m ellipse with no
 # axial strain (shapes.ellipse_loop); the held-out horizontal ellipse is scaled to close with it.
 _ELLIPSE_L = ellipse_loop(_ELLIPSE_N, 0.2, 0.6)[2]
-_ELLIPSE_ROD = Rod(_ELLIPSE_N * _ELLIPSE_L, _SECTION, _SOFT, n_elements=_ELLIPSE_N)
+_ELLIPSE_ROD = Rod(_ELLIPSE_N * _ELLIPSE_L, _SECTION, _VERY_SOFT, n_elements=_ELLIPSE_N)
+_ELLIPSE_DT, _ELLIPSE_DURATION = 1e-3, 50.0  # printed: max. stable step 1e-3 s, 50001 samples
 
 
 def _ellipse_scene(name: str, title: str, width: float, height: float, description: str, thesis: dict) -> Scene:
@@ -121,12 +132,13 @@ def _ellipse_scene(name: str, title: str, width: float, height: float, descripti
 
     scale = _ELLIPSE_L / ellipse_loop(_ELLIPSE_N, width, height)[2]
     return Scene(
-        name=name, title=title, description=description, rod=_ELLIPSE_ROD, bc="clamped-clamped", dt=1e-4,
-        duration=5.0, initial=build, nodes_of_interest=(29, 28, 30),
+        name=name, title=title, description=description, rod=_ELLIPSE_ROD, bc="clamped-clamped", dt=_ELLIPSE_DT,
+        duration=_ELLIPSE_DURATION, initial=build, nodes_of_interest=(29, 28, 30),
         node_labels=("node 30 (thesis)", "node 29", "node 31"),
-        thesis=dict(thesis, width=width, height=height, n_nodes=59, node_of_interest_1based=30, dt=1e-4,
-                    duration=5.0, samples=50001, dt_max_thesis_model=1e-3),
-        chosen={"radius": 0.01, "E": _SOFT.E, "density": _SOFT.density, "nu": _SOFT.nu,
+        thesis=dict(thesis, width=width, height=height, n_nodes=59, node_of_interest_1based=30, dt=_ELLIPSE_DT,
+                    duration=_ELLIPSE_DURATION, samples=50001, dt_max_thesis_model=1e-3),
+        chosen={"radius": 0.01, "E": _VERY_SOFT.E, "density": _VERY_SOFT.density, "nu": _VERY_SOFT.nu,
+                "material": "Simulation III's rod, the printed rod stable at the printed 1e-3 s step",
                 "length": _ELLIPSE_ROD.length, "perimeter": ellipse_perimeter(width, height),
                 "ellipse_scale": scale, "nodes": "equal elements with zero axial strain, closing the loop",
                 "end_frames": "tangent frame at the origin (E3 = +x, E2 = +z) for both ends"},
@@ -139,13 +151,14 @@ def ellipse() -> Scene:
         "Paper II Simulation I: a closed loop (58 elements, 59 nodes) bent into an ellipse 0.2 m wide (x) "
         "and 0.6 m high (y) with both end nodes clamped at the origin (its top vertex), released from "
         "rest; the stress-free shape is straight, so the loop oscillates under its own elastic energy. "
-        "Chosen (not printed): radius 1 cm, E 10 MPa, rho 1000, nu 0.3 (as Simulation II). The nodes lie "
+        "Chosen (not printed): Simulation III's rod, radius 1 cm, E 10 kPa, rho 1000, nu 0.3 (the one printed "
+        "rod stable at the printed 1e-3 s step; Simulation II's 10 MPa needs 0.16 ms). The nodes lie "
         "on the ellipse with every element free of axial strain, which sets the rod length to 1.3283 m "
         "(perimeter 1.3365 m: chords are shorter than arcs). Both clamped frames are the tangent frame "
         "at the origin; the printed R_y(18.07 deg)/R_y(341.92 deg) are the first/last chord directions "
         "about the loop's normal (ours: -/+19.0 deg; nodes at equal arclength would give 18.14 deg). "
-        "Node of interest: node 30 of 59 (0-based 29) at (0, -0.6). dt 1e-4 s (dt/dt_max 0.64), 5 s "
-        "(50001 samples as in the thesis). No gravity, no damping.",
+        "Node of interest: node 30 of 59 (0-based 29) at (0, -0.6). dt 1e-3 s (printed; dt/dt_max 0.20), 50 s "
+        "(the printed 50001 samples); the loop swings about 4.5 times. No gravity, no damping.",
         {"end_orientations_deg": {"first": ("R_y", 18.07), "last": ("R_y", 341.92)},
          "node_of_interest_xy": (-0.01, -0.59),
          "rnn_errors": {"x": (1.57e-3, 0.27e-3), "y": (2.27e-3, 0.46e-3), "z": (0.23e-3, 0.06e-3)}})
@@ -159,7 +172,7 @@ def ellipse_horizontal() -> Scene:
         "an ellipse 0.6 m wide and 0.2 m high (scaled by 1.00008 so that it closes with that rod), both "
         "ends clamped at the origin (top vertex) with the tangent frame there (the printed 'identity'; "
         "the first chord is 0.7 deg off +x), released from rest. Node of interest: node 30 (0-based 29) "
-        "at (0, -0.2). dt 1e-4 s, 5 s. No gravity, no damping.",
+        "at (0, -0.2). dt 1e-3 s, 50 s. No gravity, no damping.",
         {"end_orientations_deg": {"first": ("identity", 0.0), "last": ("identity", 0.0)},
          "node_of_interest_xy": (-0.01, -0.19),
          "rnn_errors": {"x": (26.33e-3, 3.37e-3), "y": (21.71e-3, 3.70e-3), "z": (4.92e-3, 4.22e-3)}})

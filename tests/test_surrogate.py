@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -65,6 +66,19 @@ def test_windows_and_splits(tiny):
     assert hist.shape == (3, 20 + 2, 3) and fut.shape == (4, 22, 3) and w.shape == (4, 20, 3)
     assert torch.equal(hist[-1], tiny["positions"][0, 2]) and torch.equal(fut[0], tiny["positions"][0, 3])
     assert torch.equal(ref, tiny["positions"][0, 0])
+
+
+def test_ellipse_training_loops_leave_out_the_printed_and_held_out_shapes():
+    task = get_task("ellipse")
+    var = task.variants(task.base_scene(), 40, 0)
+    aspects = torch.tensor(var["info"]["aspect_h_over_w"], dtype=torch.float64)
+    assert float(aspects[0]) == pytest.approx(3.0) and var["p"].shape == (40, 59, 3)  # variant 0: the printed 0.2 m x 0.6 m loop
+    log_a = aspects[1:].log()
+    assert float((log_a - math.log(3.0)).abs().min()) > math.log(1.1)  # no replay of the printed loop
+    assert float((log_a - math.log(1 / 3)).abs().min()) > math.log(1.25)  # the held-out loop stays unseen
+    assert math.log(1.25) <= float(log_a.abs().min()) and float(log_a.abs().max()) <= math.log(5.0)
+    assert bool((log_a > 0).any()) and bool((log_a < 0).any())  # tall and wide loops
+    assert float(var["p"][:, [0, -1]].abs().max()) == 0  # every loop closes at the clamped origin
 
 
 def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
