@@ -3,8 +3,9 @@
     python scripts/train_surrogate.py --task semicircle [--variants 24] [--epochs 60] [--quick]
 
 Generates the dataset with the physics if ``data/<task>_v<V>_s<seed>.pt`` is missing, trains with
-Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, early stopping
-on the validation rollout loss, ``--resume`` from a Lightning checkpoint, ``--ddp`` for
+Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, checkpoint selection
+and early stopping on the validation windows' rollout loss or, with ``--select-by rollout``, on a
+free-running rollout of the whole validation trajectories, ``--resume`` from a Lightning checkpoint, ``--ddp`` for
 multi-process data parallel), evaluates one-step and free-running errors on the printed scene's
 unseen last 40 % and on the held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
 the metrics and this exact command. Prints one JSON line last.
@@ -29,6 +30,9 @@ from cmlearn.surrogate import save_checkpoint
 from cmlearn.surrogate.evaluate import evaluate, interest_slots
 
 
+SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
+
+
 @dataclass
 class Args:
     task: str = "semicircle"
@@ -48,6 +52,9 @@ class Args:
     one_step_weight: float = 0.0  # weight of a teacher-forced one-step loss term beside the rollout loss
     closed_loop: bool = False  # training rollouts compute their own wrench (tasks whose custom module can)
     patience: int = 15
+    select_by: str = "val_loss"  # checkpoint selection and early stopping: val_loss or rollout (val_rollout_mm)
+    select_steps: int = 0  # steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)
+    keep_top_k: int = 1  # Lightning checkpoints kept by the selection metric (-1: every epoch)
     threads: int = 2
     data_dir: str = "data"
     out: str = ""
@@ -67,6 +74,8 @@ def parse(argv=None) -> Args:
         else:
             ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
+    if a.select_by not in SELECT_METRICS:
+        ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
         a.variants, a.epochs, a.warmup_epochs, a.horizon = min(a.variants, 3), min(a.epochs, 2), 1, min(a.horizon, 4)
         a.duration = a.duration or 0.3
@@ -119,7 +128,7 @@ def main(argv=None):
     from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
-    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
+    from cmlearn.surrogate.training import RolloutSelection, SurrogateDataModule, SurrogateModule
 
     torch.set_num_threads(a.threads)
     L.seed_everything(a.seed, workers=True)
@@ -146,10 +155,12 @@ def main(argv=None):
         loggers.append(TensorBoardLogger(a.log_dir, name=task.name))
     except ImportError:
         pass
-    ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor="val_loss", save_last=True)
+    monitor = SELECT_METRICS[a.select_by]
+    ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor=monitor, save_last=True,
+                              save_top_k=a.keep_top_k, filename="{epoch}-{val_loss:.1f}-{val_rollout_mm:.1f}")
     trainer = L.Trainer(
         max_epochs=a.epochs, logger=loggers, deterministic=True, enable_progress_bar=True,
-        callbacks=[EarlyStopping("val_loss", patience=a.patience), ckpt_cb], gradient_clip_val=1.0,
+        callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb], gradient_clip_val=1.0,
         limit_train_batches=a.train_batches or 1.0, accelerator="cpu", devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
         num_sanity_val_steps=0)
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)

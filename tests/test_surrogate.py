@@ -179,6 +179,30 @@ def test_one_step_loss_predicts_every_frame_from_the_true_history(tiny):
         SurrogateModule(model, one_step_weight=-1.0)
 
 
+def test_rollout_selection_scores_the_free_running_validation_trajectory(tiny):
+    """val_rollout_mm is the modelled nodes' mean error of the surrogate rolled out from the validation
+    trajectory's first frame to its end, as the evaluation's free-running mode computes it; a runaway
+    scores the cap."""
+    from cmlearn.surrogate.training import RolloutSelection
+    dm, model, module = tiny_training(tiny, 1)
+    torch.manual_seed(3)
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    (v, a, b), = dm.ranges["val"]
+    P, Wk = dm.positions[v, a:b + 1], dm.wrench[v, a:b]
+    ref = free_running(model, P, Wk, 2)
+    idx = model.idx_modeled
+    want = float((ref[:, idx] - P[3:, idx]).abs().mean()) * 1e3
+    sel = RolloutSelection(dm)
+    assert sel.score(module) == pytest.approx(want, rel=1e-4)
+    assert want > 0.01  # the erring model drifts measurably over the 0.3 s trajectory
+    short = float((ref[:5, idx] - P[3:8, idx]).abs().mean()) * 1e3
+    assert RolloutSelection(dm, steps=5).score(module) == pytest.approx(short, rel=1e-4)
+    for prm in model.head[-1].parameters():
+        prm.data.fill_(1e30)  # every step overflows
+    assert RolloutSelection(dm, cap_mm=123.0).score(module) == 123.0
+
+
 def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
     skipped and counted, every weight stays finite and equal to before."""
