@@ -73,6 +73,27 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
     assert not list((tmp_path / "data").glob("semicircle*"))  # refused before generating any data
 
 
+def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path):
+    run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
+                "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs"], tmp_path)
+    meta = json.loads((tmp_path / "ck.json").read_text())
+    rep = run_script([str(ROOT / "scripts/report_epoch_selection.py"), "ck.pt", "--out", "sel.md"], tmp_path)
+    assert [e["epoch"] for e in rep["epochs"]] == [0, 1] and rep["cases"] == ["seen_last40", "semicircle_heldout"]
+    scores = {e["epoch"]: e["val_rollout_mm"] for e in rep["epochs"]}
+    chosen = rep["selected"]["val_rollout_mm"]
+    assert scores[chosen] == min(scores.values())
+    # the shipped weights are the selected epoch's: its rollouts reproduce the metrics train_surrogate recorded
+    row = next(e for e in rep["epochs"] if e["epoch"] == chosen)["free_running_max_mm"]
+    for errs, case in zip(row, rep["cases"]):
+        want = [meta["metrics"][case]["free_running"]["node"][ax]["max_mm"] for ax in "xyz"]
+        assert errs == pytest.approx(want, rel=1e-4, abs=1e-6)
+    assert "| epoch | val_loss | val_rollout_mm |" in (tmp_path / "sel.md").read_text()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--select-by", "loss"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "--select-by must be one of" in bad.stderr
+
+
 def test_surrogate_report(tmp_path):
     res = run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
     assert (tmp_path / "s.md").exists() and len(res["rows"]) >= 3
