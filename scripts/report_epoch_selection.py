@@ -28,7 +28,7 @@ from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
-from cmlearn.surrogate.evaluate import free_running, interest_slots
+from cmlearn.surrogate.evaluate import free_running, from_rest, interest_slots
 
 
 def epoch_metrics(version_dir: Path) -> dict[int, dict]:
@@ -56,8 +56,7 @@ def cases(task, meta: dict, data_dir: str):
         scene = task.scene_by_name(name)
         p, W, _ = scene_rollout(task, replace(scene, duration=args["duration"]) if args["duration"] else scene)
         Wk = node_wrench(W.float(), task.wrench_nodes, task.modeled)
-        out.append((name, torch.cat([p[:1].expand(eta, -1, -1), p], 0),
-                    torch.cat([torch.zeros(eta, *Wk.shape[1:]), Wk], 0), eta))
+        out.append((name, *from_rest(p, Wk, eta), eta))
     return out
 
 

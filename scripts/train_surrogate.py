@@ -27,7 +27,7 @@ from cmlearn.data import generate_dataset, get_task, load_dataset, scene_rollout
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
-from cmlearn.surrogate.evaluate import evaluate, interest_slots
+from cmlearn.surrogate.evaluate import evaluate, from_rest, interest_slots
 
 
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
@@ -114,10 +114,7 @@ def evaluate_all(model, task, data: dict, a: Args) -> dict:
             held = replace(held, duration=a.duration)
         p, W, wall = scene_rollout(task, held)
         Wk = node_wrench(W.float(), task.wrench_nodes, task.modeled)
-        # the surrogate starts from rest: a history of eta + 1 copies of the initial frame
-        p_hist = torch.cat([p[:1].expand(a.eta, -1, -1), p], 0)
-        W_hist = torch.cat([torch.zeros(a.eta, *Wk.shape[1:]), Wk], 0)
-        metrics[name] = evaluate(model, p_hist, W_hist, a.eta, interest_slots(task, held), L)
+        metrics[name] = evaluate(model, *from_rest(p, Wk, a.eta), a.eta, interest_slots(task, held), L)
         metrics[name]["lgvi_wall_s"] = wall
     return metrics
 

@@ -14,7 +14,7 @@ from cmlearn.data import generate_dataset, get_task, load_dataset
 from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 from cmlearn.surrogate import CheckpointError, Surrogate, load_checkpoint, save_checkpoint, surrogate_checkpoints
-from cmlearn.surrogate.evaluate import free_running, one_step, short_check
+from cmlearn.surrogate.evaluate import free_running, from_rest, one_step, short_check
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = surrogate_checkpoints(ROOT / "checkpoints")
@@ -107,7 +107,7 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1], program=True), frozen, atol=1e-7)
     model.unfreeze_features()
     assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1]), frozen, atol=1e-7)
-    fr = free_running(model, torch.cat([rolled[:1].expand(2, -1, -1), rolled]), torch.cat([torch.zeros(2, *W.shape[1:]), W]), 2)
+    fr = free_running(model, *from_rest(rolled, W, 2), 2)
     assert torch.allclose(fr, rolled[1:], atol=1e-6)
 
 

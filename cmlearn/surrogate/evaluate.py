@@ -17,7 +17,7 @@ from torch import Tensor
 
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-__all__ = ["one_step", "free_running", "evaluate", "interest_slots", "THESIS_ERRORS_MM"]
+__all__ = ["one_step", "free_running", "evaluate", "from_rest", "interest_slots", "THESIS_ERRORS_MM"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
 THESIS_ERRORS_MM = {
@@ -34,6 +34,14 @@ def interest_slots(task, scene) -> list[int]:
     """Tracked-list positions of the scene's nodes of interest that the task models."""
     pos = {n: i for i, n in enumerate(task.tracked)}
     return [pos[n] for n in scene.nodes_of_interest if n in pos]
+
+
+def from_rest(positions: Tensor, wrench: Tensor, eta: int) -> tuple[Tensor, Tensor]:
+    """A trajectory from rest with ``eta`` copies of its first frame (and zero wrench) before it, so that
+    the surrogate's rollout from frame ``eta`` starts from rest: ``free_running(model, *from_rest(p, W,
+    eta), eta)``."""
+    return (torch.cat([positions[:1].expand(eta, *positions.shape[1:]), positions], 0),
+            torch.cat([wrench.new_zeros(eta, *wrench.shape[1:]), wrench], 0))
 
 
 @torch.no_grad()

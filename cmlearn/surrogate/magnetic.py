@@ -31,7 +31,7 @@ from cmlearn.data.magnetic import (currents_series, equivalent_forces, field_sam
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-from .evaluate import interest_slots, one_step
+from .evaluate import from_rest, interest_slots, one_step
 
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
            "closed_loop_wrench", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene"]
@@ -223,8 +223,7 @@ def evaluate(model, task, data: dict, args) -> dict:
         held = task.scene_by_name(name)
         p, W, wall = _heldout_reference(task, name, duration, getattr(args, "data_dir", "data"))
         Wk = node_wrench(W, task.wrench_nodes, task.modeled)
-        p_hist = torch.cat([p[:1].expand(eta, -1, -1), p], 0)
-        W_hist = torch.cat([torch.zeros(eta, *Wk.shape[1:]), Wk], 0)
+        p_hist, W_hist = from_rest(p, Wk, eta)
         metrics[name] = _case(model, task, replace(held, duration=duration or held.duration), p_hist, W_hist, eta,
                               pad=eta, data_dir=data_dir)
         metrics[name]["lgvi_wall_s"] = wall
