@@ -18,17 +18,16 @@ import csv
 import json
 import math
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from cmlearn.data import get_task, load_dataset, scene_rollout
+from cmlearn.data import dataset_path, get_task, load_dataset
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
-from cmlearn.surrogate.evaluate import free_running, from_rest, interest_slots
+from cmlearn.surrogate.evaluate import free_running, heldout_case, interest_slots
 
 
 def epoch_metrics(version_dir: Path) -> dict[int, dict]:
@@ -43,8 +42,8 @@ def epoch_metrics(version_dir: Path) -> dict[int, dict]:
 def cases(task, meta: dict, data_dir: str):
     """(name, positions, wrench, start) of the seen scene's last 40 % and of each held-out scene."""
     args = meta["args"]
-    suffix = f"_d{args['duration']:g}" if args["duration"] else ""  # as train_surrogate.py names the file
-    data = load_dataset(Path(data_dir) / f"{task.name}_v{args['variants']}_s{args['seed']}{suffix}.pt", task=task.name)
+    data = load_dataset(dataset_path(data_dir, task.name, args["variants"], args["seed"], args["duration"]),
+                        task=task.name)
     if data["meta"]["data_hash"] != meta["data_hash"]:
         raise SystemExit(f"data file hash {data['meta']['data_hash']} is not the run's {meta['data_hash']}")
     dm = data["meta"]
@@ -53,10 +52,7 @@ def cases(task, meta: dict, data_dir: str):
     out = [("seen_last40", pos, node_wrench(data["wrench"][0], dm["wrench_nodes"], dm["modeled"]), cut)]
     eta = meta["architecture"]["eta"]
     for name in task.heldout:
-        scene = task.scene_by_name(name)
-        p, W, _ = scene_rollout(task, replace(scene, duration=args["duration"]) if args["duration"] else scene)
-        Wk = node_wrench(W.float(), task.wrench_nodes, task.modeled)
-        out.append((name, *from_rest(p, Wk, eta), eta))
+        out.append((name, *heldout_case(task, name, eta, args["duration"])[:2], eta))
     return out
 
 

@@ -23,11 +23,11 @@ from pathlib import Path
 import torch
 
 import cmlearn
-from cmlearn.data import generate_dataset, get_task, load_dataset, scene_rollout
+from cmlearn.data import dataset_path, generate_dataset, get_task, load_dataset
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
-from cmlearn.surrogate.evaluate import evaluate, from_rest, interest_slots
+from cmlearn.surrogate.evaluate import evaluate, heldout_case, interest_slots
 
 
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
@@ -87,8 +87,7 @@ def build_model(task, a: Args) -> NodeLSTMSurrogate:
 
 
 def dataset_for(task, a: Args) -> dict:
-    suffix = f"_d{a.duration:g}" if a.duration else ""
-    path = Path(a.data_dir) / f"{task.name}_v{a.variants}_s{a.seed}{suffix}.pt"
+    path = dataset_path(a.data_dir, task.name, a.variants, a.seed, a.duration)
     if not path.exists():
         print(f"generating {path} with the LGVI ({a.variants} variants) ...", flush=True)
         generate_dataset(task, a.variants, a.seed, path, duration=a.duration or None)
@@ -108,13 +107,8 @@ def evaluate_all(model, task, data: dict, a: Args) -> dict:
     cut = split_ranges(meta["n_variants"], pos.shape[0])["test"][0][1]
     metrics = {"seen_last40": evaluate(model, pos, wr, cut, slots, L)}
     for name in task.heldout:
-        held = task.scene_by_name(name)
-        if a.duration:
-            from dataclasses import replace
-            held = replace(held, duration=a.duration)
-        p, W, wall = scene_rollout(task, held)
-        Wk = node_wrench(W.float(), task.wrench_nodes, task.modeled)
-        metrics[name] = evaluate(model, *from_rest(p, Wk, a.eta), a.eta, interest_slots(task, held), L)
+        p, Wk, wall = heldout_case(task, name, a.eta, a.duration)
+        metrics[name] = evaluate(model, p, Wk, a.eta, interest_slots(task, task.scene_by_name(name)), L)
         metrics[name]["lgvi_wall_s"] = wall
     return metrics
 

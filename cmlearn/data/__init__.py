@@ -1,6 +1,6 @@
 """Datasets from the physics: surrogate tasks, LGVI data generation, training windows."""
-from .generate import data_hash, generate_dataset, load_dataset, scene_rollout, simulate_task
+from .generate import data_hash, dataset_path, generate_dataset, load_dataset, scene_rollout, simulate_task
 from .tasks import TASKS, SurrogateTask, get_task
 
-__all__ = ["TASKS", "SurrogateTask", "get_task", "data_hash", "generate_dataset", "load_dataset",
+__all__ = ["TASKS", "SurrogateTask", "get_task", "data_hash", "dataset_path", "generate_dataset", "load_dataset",
            "scene_rollout", "simulate_task"]

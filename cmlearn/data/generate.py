@@ -24,7 +24,13 @@ from cmlearn.io import atomic_write
 
 from .tasks import SurrogateTask, get_task
 
-__all__ = ["simulate_task", "generate_dataset", "load_dataset", "data_hash", "scene_rollout"]
+__all__ = ["simulate_task", "generate_dataset", "load_dataset", "data_hash", "dataset_path", "scene_rollout"]
+
+
+def dataset_path(data_dir: str | Path, task: str, variants: int, seed: int, duration: float | None = None) -> Path:
+    """The cache file of a dataset: ``<data_dir>/<task>_v<variants>_s<seed>[_d<duration>].pt``."""
+    suffix = f"_d{duration:g}" if duration else ""
+    return Path(data_dir) / f"{task}_v{variants}_s{seed}{suffix}.pt"
 
 
 def data_hash(*tensors: torch.Tensor) -> str:

@@ -44,6 +44,18 @@ def from_rest(positions: Tensor, wrench: Tensor, eta: int) -> tuple[Tensor, Tens
             torch.cat([wrench.new_zeros(eta, *wrench.shape[1:]), wrench], 0))
 
 
+def heldout_case(task, name: str, eta: int, duration: float | None = None) -> tuple[Tensor, Tensor, float]:
+    """A held-out scene of ``task`` simulated by the LGVI (for ``duration`` if given), as the modelled
+    nodes' wrench and the tracked positions from rest (``from_rest``), with the LGVI wall time."""
+    from dataclasses import replace
+
+    from cmlearn.data import scene_rollout
+    from cmlearn.data.windows import node_wrench
+    scene = task.scene_by_name(name)
+    p, W, wall = scene_rollout(task, replace(scene, duration=duration) if duration else scene)
+    return (*from_rest(p, node_wrench(W.float(), task.wrench_nodes, task.modeled), eta), wall)
+
+
 @torch.no_grad()
 def one_step(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
     """Teacher-forced predictions of frames start+1 .. T-1: (T-1-start, n_tracked, 3)."""
