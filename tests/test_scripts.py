@@ -121,6 +121,25 @@ def test_rollout_sensitivity_report_quick(tmp_path):
     assert cases["float32"]["x"]["max_mm"] < x1
 
 
+def test_load_amplitude_report_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_load_amplitude.py"), "--checkpoints",
+                      str(ROOT / "checkpoints/semicircle_fast.pt"),
+                      "--scales", "0", "1", "--duration", "1.2", "--out", "amp.md"], tmp_path)
+    assert (tmp_path / "amp.md").exists() and res["scene"] == "semicircle_heldout"
+    rest, pushed = res["rows"]
+    # unloaded, the semicircle is an exact equilibrium: the node stays put and the surrogate stays near it
+    assert max(rest["range_mm"]) < 1e-6 and rest["errors"]["semicircle_fast.pt"]["pct_of_range"] == [None] * 3
+    assert max(rest["errors"]["semicircle_fast.pt"]["max_mm"]) < 5.0
+    # the held-out load (out of plane, from t = 1 s) swings the node along z tens of millimetres within 0.2 s
+    assert pushed["range_mm"][2] > 20.0 and pushed["range_mm"][0] < 1e-6
+    err = pushed["errors"]["semicircle_fast.pt"]
+    assert err["pct_of_range"][2] == pytest.approx(100 * err["max_mm"][2] / pushed["range_mm"][2])
+    bad = subprocess.run([sys.executable, str(ROOT / "scripts/report_load_amplitude.py"), "--checkpoints",
+                          str(ROOT / "checkpoints/semicircle.pt"), str(ROOT / "checkpoints/square_tracking.pt")], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "--checkpoints" in bad.stderr
+
+
 def test_one_step_bias_report_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/report_one_step_bias.py"), "--checkpoints", "checkpoints/semicircle.pt",
                       "--duration", "0.3", "--window", "10", "--out", "bias.md"], tmp_path)
