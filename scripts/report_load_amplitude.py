@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from cmlearn.data.generate import scene_rollout
+from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate, SurrogateDivergence
 from cmlearn.surrogate.evaluate import interest_slots
@@ -71,7 +72,8 @@ def main(argv=None):
             except SurrogateDivergence as e:
                 row["errors"][name] = {"runs_away": str(e)}
                 continue
-            err = ((pred[:, slot].double() - true).abs().amax(0) * 1e3).tolist()
+            e = axis_errors(pred[:, slot], true, base.rod.length)
+            err = [e[ax]["max_mm"] for ax in "xyz"]
             row["errors"][name] = {"max_mm": err,
                                    "pct_of_range": [100 * e / r if r > 1e-9 else None for e, r in zip(err, rng)]}
         rows.append(row)

@@ -3,14 +3,12 @@ Under pytest-xdist each worker (and every script a test starts) runs torch on on
 share the cores instead of oversubscribing them."""
 import os
 
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    os.environ["OMP_NUM_THREADS"] = "1"
-
 import numpy as np
 import pytest
 import torch
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = "1"  # inherited by the scripts the tests start
     torch.set_num_threads(1)
 
 
