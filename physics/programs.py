@@ -37,13 +37,23 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
             gm = make_fx(fn, tracing_mode="fake", _allow_non_fake_inputs=True)(*inputs)
     finally:
         torch.backends.mkldnn.enabled = onednn
+    single_output = isinstance(next(n for n in gm.graph.nodes if n.op == "output").args[0], torch.fx.Node)
     options = {"max_fusion_size": 100000, "cpp_wrapper": True}
+    prog = None
     with torch.no_grad():
         if gemm_templates:
             try:
-                return torch._inductor.compile(gm, list(inputs), options={
+                prog = torch._inductor.compile(gm, list(inputs), options={
                     **options, "freezing": True, "max_autotune": True, "max_autotune_gemm_backends": "CPP"})
             except Exception as err:  # noqa: BLE001 - e.g. NoValidChoicesError: a product no template covers
                 warnings.warn(f"compile_program: C++ GEMM templates failed ({type(err).__name__}: {err}); "
                               "compiling with library matrix products instead", RuntimeWarning, stacklevel=2)
-        return torch._inductor.compile(gm, list(inputs), options=options)
+        if prog is None:
+            prog = torch._inductor.compile(gm, list(inputs), options=options)
+    if not single_output:
+        return prog
+
+    def single(*args):  # inductor hands some single-tensor programs back as a one-element list
+        out = prog(*args)
+        return out[0] if isinstance(out, (list, tuple)) else out
+    return single
