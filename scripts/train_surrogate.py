@@ -40,6 +40,8 @@ class Args:
     seed: int = 0
     eta: int = 2
     hidden: int = 48
+    rest_anchor: bool = False  # the output at rest subtracted (scenes whose initial shape is an equilibrium)
+    mirror: str = ""  # x, y or z: the step made equivariant under that world axis's reflection
     horizon: int = 32
     warmup_epochs: int = 15
     epochs: int = 60
@@ -74,6 +76,8 @@ def parse(argv=None) -> Args:
         else:
             ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
+    if a.mirror not in ("", "x", "y", "z"):
+        ap.error(f"--mirror must be x, y or z (a world axis), got {a.mirror!r}")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
@@ -83,7 +87,8 @@ def parse(argv=None) -> Args:
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
-    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden))
+    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor,
+                                               mirror_axis="xyz".index(a.mirror) if a.mirror else None))
 
 
 def dataset_for(task, a: Args) -> dict:

@@ -111,6 +111,73 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     assert torch.allclose(fr, rolled[1:], atol=1e-6)
 
 
+def test_rest_anchor_keeps_an_unloaded_rod_at_rest_and_changes_nothing_else(tiny, tmp_path):
+    from dataclasses import replace
+    task = get_task("semicircle")
+    torch.manual_seed(0)
+    free = tiny_model(task).eval()
+    for prm in free.head[-1].parameters():  # a head whose output at rest is not zero
+        prm.data.normal_(0, 1e-2)
+    free.a_scale.fill_(1e-4)
+    anchored = NodeLSTMSurrogate(replace(free.config, rest_anchor=True)).eval()
+    anchored.load_state_dict(free.state_dict())
+    scene = replace(task.base_scene(), duration=0.2, loads=replace(task.base_scene().loads, force=None))
+    ref = scene.initial_configuration()["p"][list(task.tracked)].float()[None]
+    rest = anchored.rest_accel(ref).detach()
+    assert float(rest.abs().max()) > 1e-7  # what the unanchored model adds at every step at rest
+    drift, _ = Surrogate(free, {"task": "semicircle"}).run_scene(scene)
+    engine = Surrogate(anchored, {"task": "semicircle"})
+    still, _ = engine.run_scene(scene)
+    assert float((drift - drift[:1]).abs().max()) > 1e-4  # 20 steps of a constant second difference
+    assert torch.equal(still, still[:1].expand_as(still))  # exactly at rest
+    # away from rest the anchored step is the free one minus the rest output, eager, frozen or compiled
+    pos = tiny["positions"][1]
+    hist, w = pos[10:13][None], torch.randn(1, len(task.modeled), 3) * 0.05
+    ref0 = pos[:1]
+    want = free(hist, w, ref0) - anchored.rest_accel(ref0)
+    assert torch.allclose(anchored(hist, w, ref0), want, atol=1e-7)
+    assert torch.allclose(engine.step(hist, w, ref0), want, atol=1e-7)
+    assert torch.allclose(engine.compile().step(hist, w, ref0), want, atol=1e-6)
+    ref0.add_(1e-3)  # changed in place: the engine's cached rest output is recomputed
+    assert torch.allclose(engine.step(hist, w, ref0), free(hist, w, ref0) - anchored.rest_accel(ref0), atol=1e-6)
+    save_checkpoint(tmp_path / "a.pt", anchored, {"task": "semicircle"})
+    back, _ = load_checkpoint(tmp_path / "a.pt")
+    assert back.config.rest_anchor and torch.allclose(back(hist, w, ref0), anchored(hist, w, ref0), atol=1e-7)
+
+
+@torch.no_grad()
+def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
+    from dataclasses import replace
+    task = get_task("semicircle")
+    torch.manual_seed(1)
+    free = tiny_model(task).eval()
+    for prm in free.head[-1].parameters():  # a head that does not vanish
+        prm.data.normal_(0, 1e-2)
+    free.a_scale.fill_(1e-4)
+    sym = NodeLSTMSurrogate(replace(free.config, mirror_axis=2)).eval()
+    sym.load_state_dict(free.state_dict())
+    S = torch.tensor([1.0, 1.0, -1.0])
+    pos = tiny["positions"][2]  # a random pulse with an out-of-plane part
+    assert float(pos[:, :, 2].abs().max()) > 1e-5
+    hist, w, ref = pos[10:13][None], torch.randn(1, len(task.modeled), 3) * 0.05, pos[:1]
+    want = 0.5 * (free(hist, w, ref) + S * free(hist * S, w * S, ref * S))  # the Verlet part is equivariant itself
+    got = sym(hist, w, ref)
+    assert torch.allclose(got, want, atol=1e-7)
+    assert float((free(hist * S, w * S, ref * S) - S * free(hist, w, ref)).abs().max()) > 1e-6  # the plain net is not
+    assert torch.allclose(sym(hist * S, w * S, ref * S), S * got, atol=1e-7)
+    sym.freeze_features()  # the reflection folded into the frozen feature matrices, dense and per node
+    for program in (False, True):
+        assert torch.allclose(sym(hist, w, ref, program=program), got, atol=1e-6)
+        assert torch.allclose(sym(hist * S, w * S, ref * S, program=program), S * got, atol=1e-6)
+    sym.unfreeze_features()
+    # the printed in-plane push: the free model leaves the plane, the mirrored one cannot
+    p0, wr = tiny["positions"][0], node_wrench(tiny["wrench"][0], tiny["meta"]["wrench_nodes"], task.modeled)
+    assert float(free_running(free, p0, wr, 2)[..., 2].abs().max()) > 1e-6
+    assert float(free_running(sym, p0, wr, 2)[..., 2].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="mirror_axis"):
+        replace(free.config, mirror_axis=3)
+
+
 def tiny_training(tiny, max_epochs):
     """Data module, model and Lightning module for a seeded horizon-4 run on the tiny data."""
     from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule

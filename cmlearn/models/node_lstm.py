@@ -15,6 +15,19 @@ under the large constant coordinates:
   ``p_k(t+1) = 2 p_k(t) - p_k(t-1) + a_k * a_scale_k`` (a Stormer-Verlet-like update, so a zero
   output continues the current motion).
 
+With ``rest_anchor`` the head's output at rest (the history all at the reference shape, no force) is
+subtracted from it, so an unloaded rod at its reference shape stays there exactly: for scenes whose
+reference shape is an equilibrium (Simulation III's clamped semicircle), where a learned constant
+second difference would otherwise make the free-running rollout drift from rest as h^2. It costs
+one extra step's evaluation per rollout (:meth:`rest_accel`, passed to every step as ``rest``).
+
+With ``mirror_axis`` (0, 1 or 2) the step is made exactly equivariant under the reflection ``S`` of that
+world axis: ``a(x) = (a_net(x) + S a_net(S x)) / 2`` over the mirrored history, forces and reference.
+A rod of circular section without gravity along that axis obeys this symmetry whatever its shape, so
+it costs the model nothing it could have learned, and it keeps a motion in the mirror plane (Simulation
+III's semicircle pushed in its plane) in that plane exactly instead of leaking out of it; every
+training window then also teaches its mirror image. Both halves run as one batch of twice the size.
+
 The LSTM and the dense layers are shared by all nodes (each node runs its own instance over its own
 history; the node embedding lets the head specialise), so every surrogate step is one fused LSTM
 call over ``batch x nodes`` sequences, and the nodes feed each other's predictions at the next
@@ -43,6 +56,8 @@ class NodeLSTMConfig:
     wrench_hidden: int = 16
     embedding: int = 8
     head_hidden: int = 64
+    rest_anchor: bool = False      # subtract the output at rest: the reference shape is an equilibrium
+    mirror_axis: int | None = None  # world axis whose reflection the dynamics are symmetric under
 
     def __post_init__(self):
         K = len(self.modeled)
@@ -50,6 +65,8 @@ class NodeLSTMConfig:
             raise ValueError("modeled, left and right must be non-empty and of equal length")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
+        if self.mirror_axis not in (None, 0, 1, 2):
+            raise ValueError(f"mirror_axis must be None, 0, 1 or 2 (a world axis), got {self.mirror_axis!r}")
         for name in ("modeled", "left", "right"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
@@ -92,6 +109,10 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("v_scale", torch.ones(K, 3))
         self.register_buffer("a_scale", torch.ones(K, 3))
         self.register_buffer("f_scale", torch.ones(()))
+        mirror = torch.ones(3)
+        if c.mirror_axis is not None:
+            mirror[c.mirror_axis] = -1.0
+        self.register_buffer("mirror", mirror, persistent=False)
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
@@ -155,10 +176,15 @@ class NodeLSTMSurrogate(nn.Module):
         if bool(dense.transpose(0, 1)[~kept].any()):
             raise RuntimeError("Input Layer I reads beyond a node's neighbours; freeze_features cannot split it")
         self._feature_matrix, self._feature_rows, self._feature_blocks = dense.reshape(D, -1), rows, blocks
+        # the reflected inputs' features: the reflection's signs folded into the rows
+        sign = self.mirror.repeat(D // 3)
+        self._feature_matrix_mirror = sign[:, None] * self._feature_matrix
+        self._feature_blocks_mirror = sign[rows].unsqueeze(-1) * blocks
         return self
 
     def unfreeze_features(self) -> None:
         self._feature_matrix = self._feature_rows = self._feature_blocks = None
+        self._feature_matrix_mirror = self._feature_blocks_mirror = None
 
     def train(self, mode: bool = True):
         if mode:
@@ -179,25 +205,58 @@ class NodeLSTMSurrogate(nn.Module):
             h = o * c.tanh()
         return h
 
-    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool = False) -> Tensor:
-        """One surrogate step: history (B, eta+1, n_tracked, 3), node forces (B, K, 3) and the reference
-        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3). ``program``: the same
-        function in the form that compiles best (frozen features per node, the LSTM as its gate
-        equations), slower eagerly."""
+    def _input_features(self, hist: Tensor, ref: Tensor, program: bool, mirrored: bool = False) -> Tensor:
+        """Input Layer I as (B * K, W, 18) LSTM sequences, of the inputs reflected by ``mirror`` where
+        ``mirrored`` (frozen, the reflection is folded into the feature matrices: no extra batch)."""
         B, W = hist.shape[:2]
         K = self.idx_modeled.numel()
         M = getattr(self, "_feature_matrix", None)
         if M is None:
-            f = self.features(hist, ref).reshape(B * K, W, N_FEATURES)
-        elif program:
-            x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)[:, self._feature_rows]  # (B, K, (W+1) * 9)
-            f = torch.einsum("bki,kio->bko", x, self._feature_blocks).reshape(B * K, W, N_FEATURES)
-        else:
-            f = (torch.cat([hist, ref[:, None]], 1).reshape(B, -1) @ M).reshape(B * K, W, N_FEATURES)
+            S = self.mirror if mirrored else 1.0
+            return self.features(hist * S, ref * S).reshape(B * K, W, N_FEATURES)
+        x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
+        if program:
+            blocks = self._feature_blocks_mirror if mirrored else self._feature_blocks
+            return torch.einsum("bki,kio->bko", x[:, self._feature_rows], blocks).reshape(B * K, W, N_FEATURES)
+        return (x @ (self._feature_matrix_mirror if mirrored else M)).reshape(B * K, W, N_FEATURES)
+
+    def _accel(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool) -> Tensor:
+        """The head's second difference (B, K, 3) in metres, mirror-symmetrised, before the rest anchor."""
+        f = self._input_features(hist, ref, program)
+        if self.config.mirror_axis is None:
+            return self._head(f, wrench, program)
+        B, S = hist.shape[0], self.mirror
+        f = torch.cat([f, self._input_features(hist, ref, program, mirrored=True)])
+        a = self._head(f, torch.cat([wrench, wrench * S]), program)
+        return 0.5 * (a[:B] + a[B:] * S)
+
+    def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
+        """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, 18) and forces
+        (B, K, 3): the LSTM, the force layers, the node embedding and the dense head."""
+        B, K = wrench.shape[:2]
         h = (self._lstm_last(f) if program else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
-        a = self.head(torch.cat([h, wf, emb], -1)) * self.a_scale
+        return self.head(torch.cat([h, wf, emb], -1)) * self.a_scale
+
+    def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
+        """The head's output (B, K, 3) at rest: every history frame the reference shape (B, n_tracked, 3),
+        no force. What ``rest_anchor`` subtracts; constant along a rollout, so compute it once and pass it
+        to :meth:`forward` as ``rest``."""
+        W, K = self.config.eta + 1, self.idx_modeled.numel()
+        hist = ref[:, None].expand(-1, W, -1, -1)
+        return self._accel(hist, ref.new_zeros(ref.shape[0], K, 3), ref, program)
+
+    def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool = False,
+                rest: Tensor | None = None) -> Tensor:
+        """One surrogate step: history (B, eta+1, n_tracked, 3), node forces (B, K, 3) and the reference
+        shape (B, n_tracked, 3) -> the modelled nodes' next positions (B, K, 3). ``program``: the same
+        function in the form that compiles best (frozen features per node, the LSTM as its gate
+        equations), slower eagerly. ``rest``: :meth:`rest_accel` of ``ref`` where the model is
+        ``rest_anchor``ed (computed here when not given; ignored otherwise)."""
+        a = self._accel(hist, wrench, ref, program)
+        if self.config.rest_anchor:
+            a = a - (self.rest_accel(ref, program) if rest is None else rest)
         pk = hist[:, -1, self.idx_modeled]
         return 2 * pk - hist[:, -2, self.idx_modeled] + a
 
@@ -212,11 +271,12 @@ class NodeLSTMSurrogate(nn.Module):
         if hist.shape[1] != W:
             raise ValueError(f"hist must hold eta + 1 = {W} frames, got {hist.shape[1]}")
         frames = list(hist.unbind(1))
+        rest = self.rest_accel(ref) if self.config.rest_anchor else None
         out = []
         for h in range(wrench.shape[1]):
             nxt = anchors[:, h] if anchors is not None else frames[-1]
             w = wrench[:, h] if wrench_fn is None else wrench_fn(h, frames[-1])
-            pk = self(torch.stack(frames[-W:], 1), w, ref)
+            pk = self(torch.stack(frames[-W:], 1), w, ref, rest=rest)
             nxt = nxt.index_copy(1, self.idx_modeled, pk)
             frames.append(nxt)
             out.append(nxt)

@@ -54,6 +54,7 @@ class Surrogate:
                                       f"now defines {want}: retrain it with scripts/train_surrogate.py")
         model.freeze_features()
         self._step = self._eager_step
+        self._rest_key = self._rest = None
 
     @classmethod
     def load(cls, path: str | Path, task: str | None = None) -> "Surrogate":
@@ -65,12 +66,25 @@ class Surrogate:
 
     def step(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
         """Next positions (B, K, 3) of the modelled nodes from the history (B, eta+1, n_tracked, 3), the node
-        forces (B, K, 3) and the reference (initial) shape (B, n_tracked, 3)."""
-        return self._step(hist, wrench, ref)
+        forces (B, K, 3) and the reference (initial) shape (B, n_tracked, 3). A ``rest_anchor`` model's
+        output at rest is computed once per reference tensor (again when it is replaced or changed in
+        place)."""
+        return self._step(hist, wrench, ref, self.rest_accel(ref))
 
     @torch.no_grad()
-    def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
-        return self.model(hist, wrench, ref)
+    def rest_accel(self, ref: Tensor) -> Tensor | None:
+        """The model's :meth:`~cmlearn.models.NodeLSTMSurrogate.rest_accel` of ``ref``, cached; ``None`` for
+        a model without the rest anchor."""
+        if not self.model.config.rest_anchor:
+            return None
+        key = (id(ref), ref._version, ref.shape, ref.dtype)
+        if key != self._rest_key:
+            self._rest_key, self._rest = key, self.model.rest_accel(ref)
+        return self._rest
+
+    @torch.no_grad()
+    def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
+        return self.model(hist, wrench, ref, rest=rest)
 
     def compile(self) -> "Surrogate":
         """Run :meth:`step` through programs compiled for each new input shape, of the model's
@@ -80,14 +94,14 @@ class Surrogate:
         programs: dict = {}
         model = self.model
 
-        def step(hist: Tensor, wrench: Tensor, ref: Tensor) -> Tensor:
-            key = (hist.shape, hist.stride(), hist.dtype, wrench.shape, wrench.stride(), wrench.dtype,
-                   ref.shape, ref.stride(), ref.dtype)
+        def step(hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
+            args = [hist, wrench, ref] + ([] if rest is None else [rest])
+            key = tuple((a.shape, a.stride(), a.dtype) for a in args)
             prog = programs.get(key)
             if prog is None:
-                prog = programs[key] = compile_program(lambda h, w, r: model(h, w, r, program=True),
-                                                       [hist, wrench, ref], gemm_templates=True)
-            return prog(hist, wrench, ref)
+                prog = programs[key] = compile_program(lambda h, w, r, *a0: model(h, w, r, program=True, rest=(a0 or (None,))[0]),
+                                                       args, gemm_templates=True)
+            return prog(*args)
 
         self._step = step
         return self
@@ -120,9 +134,10 @@ class Surrogate:
         wrench = self.scene_wrench(scene, n)
         frames = [p0] * (self.eta + 1)
         idx = self.model.idx_modeled
+        ref = p0[None]
         out = [p0]
         for k in range(n):
-            pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], p0[None])[0]
+            pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], ref)[0]
             nxt = frames[-1].index_copy(0, idx, pk)
             frames.append(nxt)
             out.append(nxt)
