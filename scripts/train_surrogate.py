@@ -41,7 +41,7 @@ class Args:
     eta: int = 2
     hidden: int = 48
     rest_anchor: bool = False  # the output at rest subtracted (scenes whose initial shape is an equilibrium)
-    mirror: str = ""  # x, y or z: the step made equivariant under that world axis's reflection
+    mirror: str = ""  # x, y or z: the step made equivariant under that reflection (one of the task's mirrors)
     horizon: int = 32
     warmup_epochs: int = 15
     epochs: int = 60
@@ -76,8 +76,9 @@ def parse(argv=None) -> Args:
         else:
             ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
-    if a.mirror not in ("", "x", "y", "z"):
-        ap.error(f"--mirror must be x, y or z (a world axis), got {a.mirror!r}")
+    if a.mirror and a.mirror not in get_task(a.task).mirrors:
+        ap.error(f"--mirror must be one of task {a.task!r}'s reflections {sorted(get_task(a.task).mirrors)}, "
+                 f"got {a.mirror!r}")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
@@ -87,8 +88,7 @@ def parse(argv=None) -> Args:
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
-    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor,
-                                               mirror_axis="xyz".index(a.mirror) if a.mirror else None))
+    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor, mirror=a.mirror))
 
 
 def dataset_for(task, a: Args) -> dict:

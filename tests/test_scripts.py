@@ -96,7 +96,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     assert bad.returncode != 0 and "--select-by must be one of" in bad.stderr
     bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", "w"],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-    assert bad.returncode != 0 and "--mirror must be x, y or z" in bad.stderr
+    assert bad.returncode != 0 and "--mirror must be one of task 'semicircle'" in bad.stderr
 
 
 def test_surrogate_report(tmp_path):

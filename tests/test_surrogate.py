@@ -178,6 +178,37 @@ def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
         replace(free.config, mirror_axis=3)
 
 
+@torch.no_grad()
+def test_mirror_with_reversed_nodes_keeps_a_symmetric_loop_symmetric(tmp_path):
+    task = get_task("ellipse")  # the loop is symmetric about x = 0 with its nodes reversed along the rod
+    torch.manual_seed(2)
+    model = NodeLSTMSurrogate(task.model_config(hidden=16, mirror="x")).eval()
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 1e-2)
+    model.a_scale.fill_(1e-4)
+    rev, S = list(reversed(range(len(task.tracked)))), torch.tensor([-1.0, 1.0, 1.0])
+    pm = [task.modeled.index(task.tracked[rev[task.tracked.index(n)]]) for n in task.modeled]
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
+    assert torch.allclose(ref[:, rev] * S, ref, atol=1e-7)
+    hist = ref[:, None] + torch.randn(1, 3, len(task.tracked), 3) * 1e-2
+    w = torch.zeros(1, len(task.modeled), 3)
+    got = model(hist, w, ref)
+    assert torch.allclose(model(hist[:, :, rev] * S, w, ref), got[:, pm] * S, atol=1e-7)
+    model.freeze_features()
+    for program in (False, True):
+        assert torch.allclose(model(hist, w, ref, program=program), got, atol=1e-6)
+        assert torch.allclose(model(hist[:, :, rev] * S, w, ref, program=program), got[:, pm] * S, atol=1e-6)
+    model.unfreeze_features()
+    sym = 0.5 * (hist + hist[:, :, rev] * S)  # a symmetric history stays symmetric along a rollout
+    out = model.rollout(sym, torch.zeros(1, 20, len(task.modeled), 3), ref)
+    assert float((out[:, :, rev] * S - out).abs().max()) < 1e-6 and float((out - sym[:, -1:]).abs().max()) > 1e-4
+    save_checkpoint(tmp_path / "m.pt", model, {"task": "ellipse"})
+    back, _ = load_checkpoint(tmp_path / "m.pt")
+    assert back.config.mirror_nodes == tuple(rev) and torch.allclose(back(hist, w, ref), got, atol=1e-7)
+    with pytest.raises(ValueError, match="declares the reflections"):
+        task.model_config(mirror="y")
+
+
 def tiny_training(tiny, max_epochs):
     """Data module, model and Lightning module for a seeded horizon-4 run on the tiny data."""
     from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule

@@ -95,7 +95,9 @@ class SurrogateTask:
     for V = n variants (the first the printed scene); ``heldout`` names the held-out scenes.
 
     ``links`` overrides the model's neighbours of some tracked ids: ``{id: (left, right)}`` (default: the
-    previous and next tracked id, none after the last). ``custom`` names a module that replaces the
+    previous and next tracked id, none after the last). ``mirrors`` names the reflections the scene's
+    physics is symmetric under, each a world axis with its tracked nodes kept (``"same"``) or reversed
+    along the rod (``"reversed"``), that a model may be made equivariant under (``model_config(mirror=...)``). ``custom`` names a module that replaces the
     node-position physics for tasks that need more (it provides ``simulate``, ``evaluate``,
     ``run_scene``, ``short_check`` and ``compare_scene``; see :mod:`cmlearn.surrogate.magnetic`)."""
 
@@ -111,6 +113,7 @@ class SurrogateTask:
     extra_scenes: dict = field(default_factory=dict)
     links: dict = field(default_factory=dict)
     custom: str = ""
+    mirrors: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if not (self.delta > 0 and math.isfinite(self.delta)):
@@ -140,9 +143,17 @@ class SurrogateTask:
         import importlib
         return getattr(importlib.import_module(self.custom), name)
 
-    def model_config(self, **kw):
-        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides."""
+    def model_config(self, mirror: str = "", **kw):
+        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides, made
+        equivariant under the reflection ``mirror`` (an axis letter of ``mirrors``) where given."""
         from cmlearn.models import NodeLSTMConfig
+        if mirror:
+            if mirror not in self.mirrors:
+                raise ValueError(f"mirror {mirror!r}: task {self.name!r} declares the reflections "
+                                 f"{sorted(self.mirrors) or 'none'}")
+            kw["mirror_axis"] = "xyz".index(mirror)
+            if self.mirrors[mirror] == "reversed":
+                kw["mirror_nodes"] = tuple(reversed(range(len(self.tracked))))
         cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, **kw)
         if not self.links:
             return cfg
@@ -313,13 +324,14 @@ TASKS = {
     "ellipse": SurrogateTask(
         name="ellipse", scene="ellipse", delta=0.01,
         modeled=tuple(range(1, 58, 2)), anchors=(0, 58), heldout=("ellipse_horizontal",),
-        variants=_ellipse_variants,
+        variants=_ellipse_variants, mirrors={"z": "same", "x": "reversed"},
         description="Simulation I: 29 modelled nodes (every other node, including node 30 of 59), both "
                     "clamped ends as anchors, 10 ms surrogate step (the loop moves at up to 0.33 m/s)."),
     "square_tracking": SurrogateTask(
         name="square_tracking", scene="square_tracking", delta=0.01,
         modeled=tuple(range(1, 9)), anchors=(0,), wrench_nodes=(8,),
         heldout=("square_tracking_circle", "square_tracking_figure8"), variants=_square_variants,
+        mirrors={"x": "same", "y": "same"},
         extra_scenes={"square_tracking_circle": lambda: tracking_heldout_scene("circle"),
                       "square_tracking_figure8": lambda: tracking_heldout_scene("figure8")},
         description="Simulation II: all 8 free nodes modelled, the clamped base as anchor, the tip force as "
@@ -327,7 +339,7 @@ TASKS = {
     "semicircle": SurrogateTask(
         name="semicircle", scene="semicircle", delta=0.01,
         modeled=tuple(sorted(set(range(5, 100, 5)) | {14})), anchors=(0, 100), wrench_nodes=(50,),
-        heldout=("semicircle_heldout",), variants=_semicircle_variants,
+        heldout=("semicircle_heldout",), variants=_semicircle_variants, mirrors={"z": "same"},
         description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
                     "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
     "magnetic_rod": SurrogateTask(

@@ -21,12 +21,16 @@ reference shape is an equilibrium (Simulation III's clamped semicircle), where a
 second difference would otherwise make the free-running rollout drift from rest as h^2. It costs
 one extra step's evaluation per rollout (:meth:`rest_accel`, passed to every step as ``rest``).
 
-With ``mirror_axis`` (0, 1 or 2) the step is made exactly equivariant under the reflection ``S`` of that
-world axis: ``a(x) = (a_net(x) + S a_net(S x)) / 2`` over the mirrored history, forces and reference.
-A rod of circular section without gravity along that axis obeys this symmetry whatever its shape, so
-it costs the model nothing it could have learned, and it keeps a motion in the mirror plane (Simulation
-III's semicircle pushed in its plane) in that plane exactly instead of leaking out of it; every
-training window then also teaches its mirror image. Both halves run as one batch of twice the size.
+With ``mirror_axis`` (0, 1 or 2) the step is made exactly equivariant under the reflection ``T`` that
+negates that world axis and, where ``mirror_nodes`` is given, maps tracked node ``i`` to
+``mirror_nodes[i]`` (a rod symmetric about a plane through its middle, its nodes reversed):
+``a(x) = (a_net(x) + T a_net(T x)) / 2`` over the mirrored history, forces and reference. The model is
+translation invariant (it sees displacements and offsets only), so any plane normal to the axis is
+the same. A rod of circular section without gravity along that axis obeys this symmetry, so it costs
+the model nothing it could have learned; it keeps a motion in the mirror plane (Simulation III's
+semicircle pushed in its plane) in that plane exactly, and a symmetric motion symmetric, instead of
+leaking out of them, and every training window also teaches its mirror image. Both halves run as one
+batch of twice the size through the LSTM and the head.
 
 The LSTM and the dense layers are shared by all nodes (each node runs its own instance over its own
 history; the node embedding lets the head specialise), so every surrogate step is one fused LSTM
@@ -58,6 +62,7 @@ class NodeLSTMConfig:
     head_hidden: int = 64
     rest_anchor: bool = False      # subtract the output at rest: the reference shape is an equilibrium
     mirror_axis: int | None = None  # world axis whose reflection the dynamics are symmetric under
+    mirror_nodes: tuple[int, ...] | None = None  # tracked index of each tracked node's mirror image (None: itself)
 
     def __post_init__(self):
         K = len(self.modeled)
@@ -67,6 +72,12 @@ class NodeLSTMConfig:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
         if self.mirror_axis not in (None, 0, 1, 2):
             raise ValueError(f"mirror_axis must be None, 0, 1 or 2 (a world axis), got {self.mirror_axis!r}")
+        if self.mirror_nodes is not None:
+            m = self.mirror_nodes
+            if self.mirror_axis is None or len(m) != self.n_tracked or sorted(m) != list(range(self.n_tracked)) \
+                    or any(m[m[i]] != i for i in range(len(m))) or sorted(m[i] for i in self.modeled) != sorted(self.modeled):
+                raise ValueError("mirror_nodes must be an involution of the tracked indices that maps modelled nodes "
+                                 "to modelled nodes, with a mirror_axis")
         for name in ("modeled", "left", "right"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
@@ -113,6 +124,11 @@ class NodeLSTMSurrogate(nn.Module):
         if c.mirror_axis is not None:
             mirror[c.mirror_axis] = -1.0
         self.register_buffer("mirror", mirror, persistent=False)
+        perm = list(c.mirror_nodes or range(c.n_tracked))
+        slot = {n: j for j, n in enumerate(c.modeled)}
+        self.register_buffer("mirror_perm", torch.tensor(perm, dtype=torch.long), persistent=False)
+        self.register_buffer("mirror_perm_modeled", torch.tensor([slot[perm[n]] for n in c.modeled], dtype=torch.long),
+                             persistent=False)
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
@@ -176,15 +192,17 @@ class NodeLSTMSurrogate(nn.Module):
         if bool(dense.transpose(0, 1)[~kept].any()):
             raise RuntimeError("Input Layer I reads beyond a node's neighbours; freeze_features cannot split it")
         self._feature_matrix, self._feature_rows, self._feature_blocks = dense.reshape(D, -1), rows, blocks
-        # the reflected inputs' features: the reflection's signs folded into the rows
+        # the mirrored inputs' features: T x = sign * x[flip] (flip an involution), folded into the rows
         sign = self.mirror.repeat(D // 3)
-        self._feature_matrix_mirror = sign[:, None] * self._feature_matrix
+        flip = (((frame[:, :, 0] + self.mirror_perm[None]) * 3)[..., None] + torch.arange(3, device=nodes.device)).flatten()
+        self._feature_matrix_mirror = sign[:, None] * self._feature_matrix[flip]
+        self._feature_rows_mirror = flip[rows]
         self._feature_blocks_mirror = sign[rows].unsqueeze(-1) * blocks
         return self
 
     def unfreeze_features(self) -> None:
         self._feature_matrix = self._feature_rows = self._feature_blocks = None
-        self._feature_matrix_mirror = self._feature_blocks_mirror = None
+        self._feature_matrix_mirror = self._feature_rows_mirror = self._feature_blocks_mirror = None
 
     def train(self, mode: bool = True):
         if mode:
@@ -212,12 +230,14 @@ class NodeLSTMSurrogate(nn.Module):
         K = self.idx_modeled.numel()
         M = getattr(self, "_feature_matrix", None)
         if M is None:
-            S = self.mirror if mirrored else 1.0
-            return self.features(hist * S, ref * S).reshape(B * K, W, N_FEATURES)
+            if mirrored:
+                hist, ref = hist[:, :, self.mirror_perm] * self.mirror, ref[:, self.mirror_perm] * self.mirror
+            return self.features(hist, ref).reshape(B * K, W, N_FEATURES)
         x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
         if program:
-            blocks = self._feature_blocks_mirror if mirrored else self._feature_blocks
-            return torch.einsum("bki,kio->bko", x[:, self._feature_rows], blocks).reshape(B * K, W, N_FEATURES)
+            rows, blocks = ((self._feature_rows_mirror, self._feature_blocks_mirror) if mirrored
+                            else (self._feature_rows, self._feature_blocks))
+            return torch.einsum("bki,kio->bko", x[:, rows], blocks).reshape(B * K, W, N_FEATURES)
         return (x @ (self._feature_matrix_mirror if mirrored else M)).reshape(B * K, W, N_FEATURES)
 
     def _accel(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool) -> Tensor:
@@ -225,10 +245,10 @@ class NodeLSTMSurrogate(nn.Module):
         f = self._input_features(hist, ref, program)
         if self.config.mirror_axis is None:
             return self._head(f, wrench, program)
-        B, S = hist.shape[0], self.mirror
+        B, S, pk = hist.shape[0], self.mirror, self.mirror_perm_modeled
         f = torch.cat([f, self._input_features(hist, ref, program, mirrored=True)])
-        a = self._head(f, torch.cat([wrench, wrench * S]), program)
-        return 0.5 * (a[:B] + a[B:] * S)
+        a = self._head(f, torch.cat([wrench, wrench[:, pk] * S]), program)
+        return 0.5 * (a[:B] + a[B:, pk] * S)
 
     def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
         """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, 18) and forces

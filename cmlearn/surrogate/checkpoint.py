@@ -54,8 +54,9 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
     cfg = dict(blob["config"])
-    for key in ("modeled", "left", "right"):
-        cfg[key] = tuple(cfg[key])
+    for key in ("modeled", "left", "right", "mirror_nodes"):
+        if cfg.get(key) is not None:
+            cfg[key] = tuple(cfg[key])
     try:
         model = cls[0](cls[1](**cfg))
         model.load_state_dict(blob["state_dict"])
