@@ -97,8 +97,8 @@ class SurrogateTask:
     ``links`` overrides the model's neighbours of some tracked ids: ``{id: (left, right)}`` (default: the
     previous and next tracked id, none after the last). ``mirrors`` names the reflections the scene's
     physics is symmetric under, each a world axis with its tracked nodes kept (``"same"``) or reversed
-    along the rod (``"reversed"``), that a model may be made equivariant under (``model_config(mirror=...)``). ``custom`` names a module that replaces the
-    node-position physics for tasks that need more (it provides ``simulate``, ``evaluate``,
+    along the rod (``"reversed"``), that a model may be made equivariant under
+    (``model_config(mirror=...)``). ``custom`` names a module that replaces the node-position physics for tasks that need more (it provides ``simulate``, ``evaluate``,
     ``run_scene``, ``short_check`` and ``compare_scene``; see :mod:`cmlearn.surrogate.magnetic`)."""
 
     name: str

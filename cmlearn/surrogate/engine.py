@@ -99,8 +99,9 @@ class Surrogate:
             key = tuple((a.shape, a.stride(), a.dtype) for a in args)
             prog = programs.get(key)
             if prog is None:
-                prog = programs[key] = compile_program(lambda h, w, r, *a0: model(h, w, r, program=True, rest=(a0 or (None,))[0]),
-                                                       args, gemm_templates=True)
+                def fn(h, w, r, rest=None):
+                    return model(h, w, r, program=True, rest=rest)
+                prog = programs[key] = compile_program(fn, args, gemm_templates=True)
             return prog(*args)
 
         self._step = step
