@@ -99,8 +99,8 @@ class Surrogate:
             key = tuple((a.shape, a.stride(), a.dtype) for a in args)
             prog = programs.get(key)
             if prog is None:
-                def fn(h, w, r, rest=None):
-                    return model(h, w, r, program=True, rest=rest)
+                def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
+                    return model(h, w, r, program=True, rest=rest[0] if rest else None)
                 prog = programs[key] = compile_program(fn, args, gemm_templates=True)
             return prog(*args)
 
