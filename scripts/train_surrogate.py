@@ -76,9 +76,8 @@ def parse(argv=None) -> Args:
         else:
             ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
-    if a.mirror and a.mirror not in get_task(a.task).mirrors:
-        ap.error(f"--mirror must be one of task {a.task!r}'s reflections {sorted(get_task(a.task).mirrors)}, "
-                 f"got {a.mirror!r}")
+    if a.mirror and a.mirror not in (mirrors := get_task(a.task).mirrors):
+        ap.error(f"--mirror must be one of task {a.task!r}'s reflections {sorted(mirrors)}, got {a.mirror!r}")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs

@@ -32,6 +32,14 @@ def tiny_model(task, eta=2, hidden=16):
     return NodeLSTMSurrogate(NodeLSTMConfig.chain(task.tracked, task.modeled, eta=eta, hidden=hidden))
 
 
+def live_head(model):
+    """``model`` in eval mode with a random last head layer: its output, at rest too, is not zero."""
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 1e-2)
+    model.a_scale.fill_(1e-4)
+    return model.eval()
+
+
 def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
     meta = tiny["meta"]
     task = get_task("semicircle")
@@ -115,10 +123,7 @@ def test_rest_anchor_keeps_an_unloaded_rod_at_rest_and_changes_nothing_else(tiny
     from dataclasses import replace
     task = get_task("semicircle")
     torch.manual_seed(0)
-    free = tiny_model(task).eval()
-    for prm in free.head[-1].parameters():  # a head whose output at rest is not zero
-        prm.data.normal_(0, 1e-2)
-    free.a_scale.fill_(1e-4)
+    free = live_head(tiny_model(task))
     anchored = NodeLSTMSurrogate(replace(free.config, rest_anchor=True)).eval()
     anchored.load_state_dict(free.state_dict())
     scene = replace(task.base_scene(), duration=0.2, loads=replace(task.base_scene().loads, force=None))
@@ -150,10 +155,7 @@ def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
     from dataclasses import replace
     task = get_task("semicircle")
     torch.manual_seed(1)
-    free = tiny_model(task).eval()
-    for prm in free.head[-1].parameters():  # a head that does not vanish
-        prm.data.normal_(0, 1e-2)
-    free.a_scale.fill_(1e-4)
+    free = live_head(tiny_model(task))
     sym = NodeLSTMSurrogate(replace(free.config, mirror_axis=2)).eval()
     sym.load_state_dict(free.state_dict())
     S = torch.tensor([1.0, 1.0, -1.0])
@@ -182,10 +184,7 @@ def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
 def test_mirror_with_reversed_nodes_keeps_a_symmetric_loop_symmetric(tmp_path):
     task = get_task("ellipse")  # the loop is symmetric about x = 0 with its nodes reversed along the rod
     torch.manual_seed(2)
-    model = NodeLSTMSurrogate(task.model_config(hidden=16, mirror="x")).eval()
-    for prm in model.head[-1].parameters():
-        prm.data.normal_(0, 1e-2)
-    model.a_scale.fill_(1e-4)
+    model = live_head(NodeLSTMSurrogate(task.model_config(hidden=16, mirror="x")))
     rev, S = list(reversed(range(len(task.tracked)))), torch.tensor([-1.0, 1.0, 1.0])
     pm = [task.modeled.index(task.tracked[rev[task.tracked.index(n)]]) for n in task.modeled]
     ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
