@@ -41,7 +41,7 @@ class Args:
     eta: int = 2
     hidden: int = 48
     rest_anchor: bool = False  # the output at rest subtracted (scenes whose initial shape is an equilibrium)
-    mirror: str = ""  # x, y or z: the step made equivariant under that reflection (one of the task's mirrors)
+    mirror: str = ""  # axis letters (x, y, z; e.g. zx): the step made equivariant under those reflections of the task
     horizon: int = 32
     warmup_epochs: int = 15
     epochs: int = 60
@@ -76,8 +76,10 @@ def parse(argv=None) -> Args:
         else:
             ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
-    if a.mirror and a.mirror not in (mirrors := get_task(a.task).mirrors):
-        ap.error(f"--mirror must be one of task {a.task!r}'s reflections {sorted(mirrors)}, got {a.mirror!r}")
+    mirrors = get_task(a.task).mirrors
+    if len(set(a.mirror)) != len(a.mirror) or not set(a.mirror) <= set(mirrors):
+        ap.error(f"--mirror must name task {a.task!r}'s reflections {sorted(mirrors)}, each at most once, "
+                 f"got {a.mirror!r}")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs

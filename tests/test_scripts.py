@@ -76,9 +76,9 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
 def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path):
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
                 "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs", "--rest-anchor",
-                "--mirror", "z"], tmp_path)
+                "--mirror", "zx"], tmp_path)
     meta = json.loads((tmp_path / "ck.json").read_text())
-    assert meta["architecture"]["rest_anchor"] and meta["architecture"]["mirror_axis"] == 2
+    assert meta["architecture"]["rest_anchor"] and meta["architecture"]["reflections"] == [[2, None], [0, list(range(22, -1, -1))]]
     rep = run_script([str(ROOT / "scripts/report_epoch_selection.py"), "ck.pt", "--out", "sel.md"], tmp_path)
     assert [e["epoch"] for e in rep["epochs"]] == [0, 1] and rep["cases"] == ["seen_last40", "semicircle_heldout"]
     scores = {e["epoch"]: e["val_rollout_mm"] for e in rep["epochs"]}
@@ -94,9 +94,10 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--select-by", "loss"],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "--select-by must be one of" in bad.stderr
-    bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", "w"],
-                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-    assert bad.returncode != 0 and "--mirror must be one of task 'semicircle'" in bad.stderr
+    for mirror in ("w", "zz"):
+        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", mirror],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert bad.returncode != 0 and "--mirror must name task 'semicircle'" in bad.stderr
 
 
 def test_surrogate_report(tmp_path):

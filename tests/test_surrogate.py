@@ -156,7 +156,7 @@ def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
     task = get_task("semicircle")
     torch.manual_seed(1)
     free = live_head(tiny_model(task))
-    sym = NodeLSTMSurrogate(replace(free.config, mirror_axis=2)).eval()
+    sym = NodeLSTMSurrogate(replace(free.config, reflections=((2, None),))).eval()
     sym.load_state_dict(free.state_dict())
     S = torch.tensor([1.0, 1.0, -1.0])
     pos = tiny["positions"][2]  # a random pulse with an out-of-plane part
@@ -176,8 +176,9 @@ def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
     p0, wr = tiny["positions"][0], node_wrench(tiny["wrench"][0], tiny["meta"]["wrench_nodes"], task.modeled)
     assert float(free_running(free, p0, wr, 2)[..., 2].abs().max()) > 1e-6
     assert float(free_running(sym, p0, wr, 2)[..., 2].abs().max()) == 0.0
-    with pytest.raises(ValueError, match="mirror_axis"):
-        replace(free.config, mirror_axis=3)
+    for bad in (((3, None),), ((2, None), (2, None)), ((2,),)):
+        with pytest.raises(ValueError, match="reflections"):
+            replace(free.config, reflections=bad)
 
 
 @torch.no_grad()
@@ -203,9 +204,53 @@ def test_mirror_with_reversed_nodes_keeps_a_symmetric_loop_symmetric(tmp_path):
     assert float((out[:, :, rev] * S - out).abs().max()) < 1e-6 and float((out - sym[:, -1:]).abs().max()) > 1e-4
     save_checkpoint(tmp_path / "m.pt", model, {"task": "ellipse"})
     back, _ = load_checkpoint(tmp_path / "m.pt")
-    assert back.config.mirror_nodes == tuple(rev) and torch.allclose(back(hist, w, ref), got, atol=1e-7)
-    with pytest.raises(ValueError, match="declares the reflections"):
-        task.model_config(mirror="y")
+    assert back.config.reflections == ((0, tuple(rev)),) and torch.allclose(back(hist, w, ref), got, atol=1e-7)
+    for bad in ("y", "xx"):
+        with pytest.raises(ValueError, match="declares the reflections"):
+            task.model_config(mirror=bad)
+    # a checkpoint written before the symmetry groups (one mirror_axis, mirror_nodes) still loads
+    blob = torch.load(tmp_path / "m.pt", weights_only=True)
+    blob["config"].pop("reflections")
+    blob["config"].update(mirror_axis=0, mirror_nodes=rev)
+    torch.save(blob, tmp_path / "old.pt")
+    old, _ = load_checkpoint(tmp_path / "old.pt")
+    assert old.config.reflections == ((0, tuple(rev)),) and torch.allclose(old(hist, w, ref), got, atol=1e-7)
+
+
+@torch.no_grad()
+def test_two_mirrors_make_a_group_and_keep_a_symmetric_planar_push_both():
+    task = get_task("semicircle")  # symmetric under z -> -z, and under x -> -x with its nodes reversed
+    torch.manual_seed(3)
+    model = live_head(NodeLSTMSurrogate(task.model_config(hidden=16, mirror="zx")))
+    assert model.mirror_sign.shape == (4, 3)
+    rev = list(reversed(range(len(task.tracked))))
+    pm = [task.modeled.index(task.tracked[rev[task.tracked.index(n)]]) for n in task.modeled]
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
+    hist = ref[:, None] + torch.randn(1, 3, len(task.tracked), 3) * 1e-2
+    w = torch.randn(1, len(task.modeled), 3) * 0.05
+    got = model(hist, w, ref)
+    images = {"z": (list(range(len(task.tracked))), list(range(len(task.modeled))), torch.tensor([1.0, 1.0, -1.0])),
+              "x": (rev, pm, torch.tensor([-1.0, 1.0, 1.0]))}
+    images["zx"] = (rev, pm, torch.tensor([-1.0, 1.0, -1.0]))
+    for frozen in (False, True):
+        if frozen:
+            model.freeze_features()
+        for perm, pk, S in images.values():
+            for program in ((False, True) if frozen else (False,)):
+                mine = model(hist[:, :, perm] * S, w[:, pk] * S, ref[:, perm] * S, program=program)
+                assert torch.allclose(mine, got[:, pk] * S, atol=1e-6)
+    model.unfreeze_features()
+    # the printed push (in plane, on the middle node): the rollout stays in the plane and symmetric about it
+    # (float64: in float32 the rounding of x and its mirror image differ)
+    model, ref = model.double(), task.base_scene().initial_configuration()["p"][list(task.tracked)][None]
+    f = torch.zeros(1, 12, len(task.modeled), 3, dtype=torch.float64)
+    f[..., task.modeled.index(50), 1] = -0.02
+    out = model.rollout(ref[:, None].expand(-1, 3, -1, -1), f, ref)
+    mid = task.tracked.index(50)
+    d = out - ref[:, None]  # the motion mirrored about the plane through the middle node
+    assert float(d[..., 2].abs().max()) == 0.0 and float(d[:, :, mid, 0].abs().max()) < 1e-12
+    assert float((d[:, :, rev] * images["x"][2].double() - d).abs().max()) < 1e-9 * float(d.abs().max())
+    assert float(d.abs().max()) > 1e-5
 
 
 def tiny_training(tiny, max_epochs):

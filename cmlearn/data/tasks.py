@@ -145,15 +145,13 @@ class SurrogateTask:
 
     def model_config(self, mirror: str = "", **kw):
         """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides, made
-        equivariant under the reflection ``mirror`` (an axis letter of ``mirrors``) where given."""
+        equivariant under the reflections ``mirror`` (axis letters of ``mirrors``, e.g. ``"zx"``) where given."""
         from cmlearn.models import NodeLSTMConfig
-        if mirror:
-            if mirror not in self.mirrors:
-                raise ValueError(f"mirror {mirror!r}: task {self.name!r} declares the reflections "
-                                 f"{sorted(self.mirrors) or 'none'}")
-            kw["mirror_axis"] = "xyz".index(mirror)
-            if self.mirrors[mirror] == "reversed":
-                kw["mirror_nodes"] = tuple(reversed(range(len(self.tracked))))
+        if len(set(mirror)) != len(mirror) or not set(mirror) <= set(self.mirrors):
+            raise ValueError(f"mirror {mirror!r}: task {self.name!r} declares the reflections "
+                             f"{sorted(self.mirrors) or 'none'} (each at most once)")
+        reverse = tuple(reversed(range(len(self.tracked))))
+        kw["reflections"] = tuple(("xyz".index(a), reverse if self.mirrors[a] == "reversed" else None) for a in mirror)
         cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, **kw)
         if not self.links:
             return cfg
@@ -338,10 +336,10 @@ TASKS = {
                     "input wrench, 10 ms surrogate step."),
     "semicircle": SurrogateTask(
         name="semicircle", scene="semicircle", delta=0.01,
-        modeled=tuple(sorted(set(range(5, 100, 5)) | {14})), anchors=(0, 100), wrench_nodes=(50,),
-        heldout=("semicircle_heldout",), variants=_semicircle_variants, mirrors={"z": "same"},
-        description="Simulation III: 20 modelled nodes (every 5th node and node 15 of 101, including the "
-                    "loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
+        modeled=tuple(sorted(set(range(5, 100, 5)) | {14, 86})), anchors=(0, 100), wrench_nodes=(50,),
+        heldout=("semicircle_heldout",), variants=_semicircle_variants, mirrors={"z": "same", "x": "reversed"},
+        description="Simulation III: 21 modelled nodes (every 5th node, node 15 of 101 and its mirror image 87, "
+                    "including the loaded node 51), both clamped ends as anchors, the node-51 force as input, 10 ms step."),
     "magnetic_rod": SurrogateTask(
         name="magnetic_rod", scene="magnetic_rod", delta=0.02, **_MAGNET_NODES,
         heldout=("magnetic_rod_heldout",), variants=_magnetic_variants,

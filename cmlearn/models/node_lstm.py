@@ -21,16 +21,18 @@ reference shape is an equilibrium (Simulation III's clamped semicircle), where a
 second difference would otherwise make the free-running rollout drift from rest as h^2. It costs
 one extra step's evaluation per rollout (:meth:`rest_accel`, passed to every step as ``rest``).
 
-With ``mirror_axis`` (0, 1 or 2) the step is made exactly equivariant under the reflection ``T`` that
-negates that world axis and, where ``mirror_nodes`` is given, maps tracked node ``i`` to
-``mirror_nodes[i]`` (a rod symmetric about a plane through its middle, its nodes reversed):
-``a(x) = (a_net(x) + T a_net(T x)) / 2`` over the mirrored history, forces and reference. The model is
-translation invariant (it sees displacements and offsets only), so any plane normal to the axis is
-the same. A rod of circular section without gravity along that axis obeys this symmetry, so it costs
-the model nothing it could have learned; it keeps a motion in the mirror plane (Simulation III's
-semicircle pushed in its plane) in that plane exactly, and a symmetric motion symmetric, instead of
-leaking out of them, and every training window also teaches its mirror image. Both halves run as one
-batch of twice the size through the LSTM and the head.
+With ``reflections`` the step is made exactly equivariant under a group of mirror symmetries. Each
+generator ``(axis, nodes)`` is the reflection that negates a world axis (0, 1 or 2) and, where
+``nodes`` is given, maps tracked node ``i`` to ``nodes[i]`` (a rod symmetric about a plane through its
+middle, its nodes reversed). Over the group ``G`` they generate (every product of generators; they
+commute), ``a(x) = mean_g g a_net(g x)`` over the reflected history, forces and reference. The model
+is translation invariant (it sees displacements and offsets only), so any plane normal to the axis
+is the same. A rod of circular section without gravity along that axis obeys such a symmetry, so it
+costs the model nothing it could have learned; it keeps a motion in a mirror plane (Simulation III's
+semicircle pushed in its plane) in that plane exactly, and a symmetric motion symmetric (the same
+semicircle's middle node stays on its plane of symmetry), instead of leaking out of them, and every
+training window also teaches its mirror images. All ``|G|`` images run as one batch ``|G|`` times the
+size through the LSTM and the head.
 
 The LSTM and the dense layers are shared by all nodes (each node runs its own instance over its own
 history; the node embedding lets the head specialise), so every surrogate step is one fused LSTM
@@ -61,8 +63,9 @@ class NodeLSTMConfig:
     embedding: int = 8
     head_hidden: int = 64
     rest_anchor: bool = False      # subtract the output at rest: the reference shape is an equilibrium
-    mirror_axis: int | None = None  # world axis whose reflection the dynamics are symmetric under
-    mirror_nodes: tuple[int, ...] | None = None  # tracked index of each tracked node's mirror image (None: itself)
+    # generators of the mirror symmetries: (world axis negated, tracked index of each tracked node's mirror
+    # image or None for itself), one per axis
+    reflections: tuple[tuple[int, tuple[int, ...] | None], ...] = ()
 
     def __post_init__(self):
         K = len(self.modeled)
@@ -70,14 +73,18 @@ class NodeLSTMConfig:
             raise ValueError("modeled, left and right must be non-empty and of equal length")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
-        if self.mirror_axis not in (None, 0, 1, 2):
-            raise ValueError(f"mirror_axis must be None, 0, 1 or 2 (a world axis), got {self.mirror_axis!r}")
-        if self.mirror_nodes is not None:
-            m = self.mirror_nodes
-            if self.mirror_axis is None or len(m) != self.n_tracked or sorted(m) != list(range(self.n_tracked)) \
+        axes = [r[0] if isinstance(r, tuple) and len(r) == 2 else None for r in self.reflections]
+        if any(a not in (0, 1, 2) for a in axes) or len(set(axes)) != len(axes):
+            raise ValueError(f"reflections must be (axis, nodes) pairs on distinct world axes 0, 1 or 2, got "
+                             f"{self.reflections!r}")
+        perms = [m for _, m in self.reflections if m is not None]
+        for m in perms:
+            if len(m) != self.n_tracked or sorted(m) != list(range(self.n_tracked)) \
                     or any(m[m[i]] != i for i in range(len(m))) or sorted(m[i] for i in self.modeled) != sorted(self.modeled):
-                raise ValueError("mirror_nodes must be an involution of the tracked indices that maps modelled nodes "
-                                 "to modelled nodes, with a mirror_axis")
+                raise ValueError("reflections: each node map must be an involution of the tracked indices that maps "
+                                 "modelled nodes to modelled nodes")
+        if any(a[b[i]] != b[a[i]] for a in perms for b in perms for i in range(self.n_tracked)):
+            raise ValueError("reflections: the node maps must commute (the reflections generate a group)")
         for name in ("modeled", "left", "right"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
@@ -120,15 +127,19 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("v_scale", torch.ones(K, 3))
         self.register_buffer("a_scale", torch.ones(K, 3))
         self.register_buffer("f_scale", torch.ones(()))
-        mirror = torch.ones(3)
-        if c.mirror_axis is not None:
-            mirror[c.mirror_axis] = -1.0
-        self.register_buffer("mirror", mirror, persistent=False)
-        perm = list(c.mirror_nodes or range(c.n_tracked))
+        # the symmetry group: element g maps positions x (..., n_tracked, 3) to sign[g] * x[..., perm[g], :]
+        signs, perms = [torch.ones(3)], [list(range(c.n_tracked))]
+        for axis, nodes in c.reflections:
+            s = torch.ones(3)
+            s[axis] = -1.0
+            m = list(nodes or range(c.n_tracked))
+            signs += [g * s for g in signs]
+            perms += [[p[i] for i in m] for p in perms]
         slot = {n: j for j, n in enumerate(c.modeled)}
-        self.register_buffer("mirror_perm", torch.tensor(perm, dtype=torch.long), persistent=False)
-        self.register_buffer("mirror_perm_modeled", torch.tensor([slot[perm[n]] for n in c.modeled], dtype=torch.long),
-                             persistent=False)
+        self.register_buffer("mirror_sign", torch.stack(signs), persistent=False)  # (G, 3)
+        self.register_buffer("mirror_perm", torch.tensor(perms, dtype=torch.long), persistent=False)  # (G, n_tracked)
+        self.register_buffer("mirror_perm_modeled", torch.tensor([[slot[p[n]] for n in c.modeled] for p in perms],
+                                                                 dtype=torch.long), persistent=False)  # (G, K)
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
@@ -191,18 +202,19 @@ class NodeLSTMSurrogate(nn.Module):
         kept = torch.zeros(K, D, dtype=torch.bool, device=rows.device).scatter_(1, rows, True)
         if bool(dense.transpose(0, 1)[~kept].any()):
             raise RuntimeError("Input Layer I reads beyond a node's neighbours; freeze_features cannot split it")
-        self._feature_matrix, self._feature_rows, self._feature_blocks = dense.reshape(D, -1), rows, blocks
-        # the mirrored inputs' features: T x = sign * x[flip] (flip an involution), folded into the rows
-        sign = self.mirror.repeat(D // 3)
-        flip = (((frame[:, :, 0] + self.mirror_perm[None]) * 3)[..., None] + torch.arange(3, device=nodes.device)).flatten()
-        self._feature_matrix_mirror = sign[:, None] * self._feature_matrix[flip]
-        self._feature_rows_mirror = flip[rows]
-        self._feature_blocks_mirror = sign[rows].unsqueeze(-1) * blocks
+        # each group element's features: g x = sign * x[flip] (flip an involution), folded into the rows; the
+        # identity first
+        sign = self.mirror_sign.repeat(1, D // 3)  # (G, D)
+        flip = (((frame[None, :, :, 0] + self.mirror_perm[:, None]) * 3)[..., None]
+                + torch.arange(3, device=nodes.device)).flatten(1)  # (G, D)
+        dense = dense.reshape(D, -1)
+        self._feature_matrix = torch.cat([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G * K * W * 18)
+        self._feature_rows = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 9)
+        self._feature_blocks = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 9, W * 18)
         return self
 
     def unfreeze_features(self) -> None:
         self._feature_matrix = self._feature_rows = self._feature_blocks = None
-        self._feature_matrix_mirror = self._feature_rows_mirror = self._feature_blocks_mirror = None
 
     def train(self, mode: bool = True):
         if mode:
@@ -215,46 +227,51 @@ class NodeLSTMSurrogate(nn.Module):
         lstm = self.lstm
         gx = f @ lstm.weight_ih_l0.t() + (lstm.bias_ih_l0 + lstm.bias_hh_l0)
         h = c = None
-        for t in range(f.shape[1]):
-            g = gx[:, t] if h is None else gx[:, t] + h @ lstm.weight_hh_l0.t()
+        for gt in gx.unbind(1):  # unbind, not indexing: its backward stacks instead of filling zeros per step
+            g = gt if h is None else gt + h @ lstm.weight_hh_l0.t()
             i, fg, gg, o = g.chunk(4, -1)
             i, gg, o = i.sigmoid(), gg.tanh(), o.sigmoid()
             c = i * gg if c is None else fg.sigmoid() * c + i * gg
             h = o * c.tanh()
         return h
 
-    def _input_features(self, hist: Tensor, ref: Tensor, program: bool, mirrored: bool = False) -> Tensor:
-        """Input Layer I as (B * K, W, 18) LSTM sequences, of the inputs reflected by ``mirror`` where
-        ``mirrored`` (frozen, the reflection is folded into the feature matrices: no extra batch)."""
+    def _input_features(self, hist: Tensor, ref: Tensor, program: bool) -> Tensor:
+        """Input Layer I of every symmetry image ``g`` of the inputs, as (G * B * K, W, 18) LSTM sequences
+        (image-major; frozen, the reflections are folded into the feature matrices)."""
         B, W = hist.shape[:2]
-        K = self.idx_modeled.numel()
+        G, K = self.mirror_sign.shape[0], self.idx_modeled.numel()
         M = getattr(self, "_feature_matrix", None)
         if M is None:
-            if mirrored:
-                hist, ref = hist[:, :, self.mirror_perm] * self.mirror, ref[:, self.mirror_perm] * self.mirror
-            return self.features(hist, ref).reshape(B * K, W, N_FEATURES)
+            if G > 1:
+                S = self.mirror_sign[:, None]
+                hist = (hist[:, :, self.mirror_perm] * S).movedim(2, 0).flatten(0, 1)
+                ref = (ref[:, self.mirror_perm] * S).movedim(1, 0).flatten(0, 1)
+            return self.features(hist, ref).reshape(G * B * K, W, N_FEATURES)
         x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
         if program:
-            rows, blocks = ((self._feature_rows_mirror, self._feature_blocks_mirror) if mirrored
-                            else (self._feature_rows, self._feature_blocks))
-            return torch.einsum("bki,kio->bko", x[:, rows], blocks).reshape(B * K, W, N_FEATURES)
-        return (x @ (self._feature_matrix_mirror if mirrored else M)).reshape(B * K, W, N_FEATURES)
+            f = torch.einsum("bgki,gkio->gbko", x[:, self._feature_rows], self._feature_blocks)
+        else:
+            f = (x @ M).reshape(B, G, -1)
+            f = f.transpose(0, 1) if G > 1 else f
+        return f.reshape(G * B * K, W, N_FEATURES)
 
     def _accel(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool) -> Tensor:
-        """The head's second difference (B, K, 3) in metres, mirror-symmetrised, before the rest anchor."""
+        """The head's second difference (B, K, 3) in metres, symmetrised over the mirror group, before the
+        rest anchor."""
         f = self._input_features(hist, ref, program)
-        if self.config.mirror_axis is None:
+        G, B = self.mirror_sign.shape[0], hist.shape[0]
+        if G == 1:
             return self._head(f, wrench, program)
-        B, S, pk = hist.shape[0], self.mirror, self.mirror_perm_modeled
-        f = torch.cat([f, self._input_features(hist, ref, program, mirrored=True)])
-        a = self._head(f, torch.cat([wrench, wrench[:, pk] * S]), program)
-        return 0.5 * (a[:B] + a[B:, pk] * S)
+        S, pk = self.mirror_sign[:, None], self.mirror_perm_modeled
+        a = self._head(f, (wrench[:, pk] * S).movedim(1, 0).flatten(0, 1), program).unflatten(0, (G, B))
+        g = torch.arange(G, device=a.device)[:, None]
+        return (a.movedim(0, 1)[:, g, pk] * S).mean(1)
 
     def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
         """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, 18) and forces
         (B, K, 3): the LSTM, the force layers, the node embedding and the dense head."""
         B, K = wrench.shape[:2]
-        h = (self._lstm_last(f) if program else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
+        h = (self._lstm_last(f) if program or self.training else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
         wf = self.wrench(wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
         return self.head(torch.cat([h, wf, emb], -1)) * self.a_scale

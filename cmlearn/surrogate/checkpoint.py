@@ -54,9 +54,13 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
     cfg = dict(blob["config"])
-    for key in ("modeled", "left", "right", "mirror_nodes"):
+    for key in ("modeled", "left", "right"):
         if cfg.get(key) is not None:
             cfg[key] = tuple(cfg[key])
+    if "mirror_axis" in cfg:  # a one-reflection checkpoint from before the symmetry groups (2026-11-25)
+        axis, nodes = cfg.pop("mirror_axis"), cfg.pop("mirror_nodes", None)
+        cfg["reflections"] = () if axis is None else ((axis, nodes),)
+    cfg["reflections"] = tuple((int(a), None if m is None else tuple(m)) for a, m in cfg.get("reflections", ()))
     try:
         model = cls[0](cls[1](**cfg))
         model.load_state_dict(blob["state_dict"])
