@@ -71,7 +71,7 @@ def test_windows_and_splits(tiny):
     assert ranges["train"] == [(0, 0, 18), (1, 0, 30)] and ranges["val"] == [(2, 0, 30)]
     ds = RolloutWindows(tiny["positions"], wr, ranges["train"], eta=2, horizon=4)
     hist, fut, w, ref = ds[0]
-    assert hist.shape == (3, 20 + 2, 3) and fut.shape == (4, 22, 3) and w.shape == (4, 20, 3)
+    assert hist.shape == (3, 21 + 2, 3) and fut.shape == (4, 23, 3) and w.shape == (4, 21, 3)
     assert torch.equal(hist[-1], tiny["positions"][0, 2]) and torch.equal(fut[0], tiny["positions"][0, 3])
     assert torch.equal(ref, tiny["positions"][0, 0])
 
