@@ -76,10 +76,10 @@ def parse(argv=None) -> Args:
         else:
             ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
-    mirrors = get_task(a.task).mirrors
-    if len(set(a.mirror)) != len(a.mirror) or not set(a.mirror) <= set(mirrors):
-        ap.error(f"--mirror must name task {a.task!r}'s reflections {sorted(mirrors)}, each at most once, "
-                 f"got {a.mirror!r}")
+    try:
+        get_task(a.task).reflections(a.mirror)
+    except ValueError as e:
+        ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs

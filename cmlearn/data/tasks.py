@@ -98,8 +98,9 @@ class SurrogateTask:
     previous and next tracked id, none after the last). ``mirrors`` names the reflections the scene's
     physics is symmetric under, each a world axis with its tracked nodes kept (``"same"``) or reversed
     along the rod (``"reversed"``), that a model may be made equivariant under
-    (``model_config(mirror=...)``). ``custom`` names a module that replaces the node-position physics for tasks that need more (it provides ``simulate``, ``evaluate``,
-    ``run_scene``, ``short_check`` and ``compare_scene``; see :mod:`cmlearn.surrogate.magnetic`)."""
+    (``model_config(mirror=...)``). ``custom`` names a module that replaces the node-position physics for
+    tasks that need more (it provides ``simulate``, ``evaluate``, ``run_scene``, ``short_check`` and
+    ``compare_scene``; see :mod:`cmlearn.surrogate.magnetic`)."""
 
     name: str
     scene: str
@@ -143,16 +144,20 @@ class SurrogateTask:
         import importlib
         return getattr(importlib.import_module(self.custom), name)
 
-    def model_config(self, mirror: str = "", **kw):
-        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides, made
-        equivariant under the reflections ``mirror`` (axis letters of ``mirrors``, e.g. ``"zx"``) where given."""
-        from cmlearn.models import NodeLSTMConfig
+    def reflections(self, mirror: str) -> tuple:
+        """``NodeLSTMConfig.reflections`` for the axis letters ``mirror`` (each one of ``mirrors``, at most
+        once); ValueError naming the declared ones otherwise."""
         if len(set(mirror)) != len(mirror) or not set(mirror) <= set(self.mirrors):
             raise ValueError(f"mirror {mirror!r}: task {self.name!r} declares the reflections "
                              f"{sorted(self.mirrors) or 'none'} (each at most once)")
         reverse = tuple(reversed(range(len(self.tracked))))
-        kw["reflections"] = tuple(("xyz".index(a), reverse if self.mirrors[a] == "reversed" else None) for a in mirror)
-        cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, **kw)
+        return tuple(("xyz".index(a), reverse if self.mirrors[a] == "reversed" else None) for a in mirror)
+
+    def model_config(self, mirror: str = "", **kw):
+        """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides, made
+        equivariant under the reflections ``mirror`` (axis letters of ``mirrors``, e.g. ``"zx"``) where given."""
+        from cmlearn.models import NodeLSTMConfig
+        cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, reflections=self.reflections(mirror), **kw)
         if not self.links:
             return cfg
         pos = {n: i for i, n in enumerate(self.tracked)}

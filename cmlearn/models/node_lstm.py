@@ -140,6 +140,7 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("mirror_perm", torch.tensor(perms, dtype=torch.long), persistent=False)  # (G, n_tracked)
         self.register_buffer("mirror_perm_modeled", torch.tensor([[slot[p[n]] for n in c.modeled] for p in perms],
                                                                  dtype=torch.long), persistent=False)  # (G, K)
+        self.register_buffer("mirror_group", torch.arange(len(signs))[:, None], persistent=False)  # (G, 1)
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
@@ -251,8 +252,7 @@ class NodeLSTMSurrogate(nn.Module):
         if program:
             f = torch.einsum("bgki,gkio->gbko", x[:, self._feature_rows], self._feature_blocks)
         else:
-            f = (x @ M).reshape(B, G, -1)
-            f = f.transpose(0, 1) if G > 1 else f
+            f = (x @ M).reshape(B, G, -1).transpose(0, 1)
         return f.reshape(G * B * K, W, N_FEATURES)
 
     def _accel(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool) -> Tensor:
@@ -264,8 +264,7 @@ class NodeLSTMSurrogate(nn.Module):
             return self._head(f, wrench, program)
         S, pk = self.mirror_sign[:, None], self.mirror_perm_modeled
         a = self._head(f, (wrench[:, pk] * S).movedim(1, 0).flatten(0, 1), program).unflatten(0, (G, B))
-        g = torch.arange(G, device=a.device)[:, None]
-        return (a.movedim(0, 1)[:, g, pk] * S).mean(1)
+        return (a.movedim(0, 1)[:, self.mirror_group, pk] * S).mean(1)
 
     def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
         """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, 18) and forces
