@@ -53,8 +53,8 @@ class LinearField:
         self.x0 = torch.as_tensor(x0, dtype=self.B0.dtype)
 
     def __call__(self, t, positions: Tensor):
-        B0, G = self.B0.to(positions.dtype), self.G.to(positions.dtype)
-        d = positions - self.x0.to(positions.dtype)
+        B0, G = self.B0.to(positions), self.G.to(positions)  # the points' dtype and device
+        d = positions - self.x0.to(positions)
         B = B0.unsqueeze(-2) + (G.unsqueeze(-3) * d.unsqueeze(-2)).sum(-1)
         shape = torch.broadcast_shapes(B.shape, positions.shape)
         return B.expand(shape), G.unsqueeze(-3).expand(*shape, 3)

@@ -6,7 +6,7 @@ Generates the dataset with the physics if ``data/<task>_v<V>_s<seed>.pt`` is mis
 Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, checkpoint selection
 and early stopping on the validation windows' rollout loss or, with ``--select-by rollout``, on a
 free-running rollout of the whole validation trajectories, ``--resume`` from a Lightning checkpoint, ``--ddp`` for
-multi-process data parallel), evaluates one-step and free-running errors on the printed scene's
+multi-process data parallel, ``--accelerator gpu`` to train on a GPU; the checkpoint is always written for the CPU), evaluates one-step and free-running errors on the printed scene's
 unseen last 40 % and on the held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
 the metrics and this exact command. Prints one JSON line last.
 """
@@ -37,7 +37,8 @@ SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
 class Args:
     task: str = "semicircle"
     variants: int = 24
-    seed: int = 0
+    seed: int = 0  # the dataset's seed (its random variants); also the training seed unless --train-seed is given
+    train_seed: int = -1  # seeds the initial weights and the batch order (-1: --seed), for runs on the same data
     eta: int = 2
     hidden: int = 48
     rest_anchor: bool = False  # the output at rest subtracted (scenes whose initial shape is an equilibrium)
@@ -62,6 +63,7 @@ class Args:
     out: str = ""
     log_dir: str = "logs"
     resume: str = ""
+    accelerator: str = "cpu"  # cpu, gpu or auto (Lightning's); off the CPU, algorithms without a deterministic kernel warn
     ddp: bool = False
     devices: int = 1
     quick: bool = False
@@ -80,6 +82,10 @@ def parse(argv=None) -> Args:
         get_task(a.task).reflections(a.mirror)
     except ValueError as e:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
+    if a.accelerator not in ("cpu", "gpu", "auto"):
+        ap.error(f"--accelerator must be cpu, gpu or auto, got {a.accelerator!r}")
+    if a.train_seed < -1:
+        ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
@@ -128,7 +134,8 @@ def main(argv=None):
     from cmlearn.surrogate.training import RolloutSelection, SurrogateDataModule, SurrogateModule
 
     torch.set_num_threads(a.threads)
-    L.seed_everything(a.seed, workers=True)
+    train_seed = a.seed if a.train_seed < 0 else a.train_seed
+    L.seed_everything(train_seed, workers=True)
     task = get_task(a.task)
     if a.closed_loop and not task.custom:
         raise SystemExit(f"--closed-loop: task {task.name!r} has no wrench model of its own (its node forces are "
@@ -139,7 +146,7 @@ def main(argv=None):
     inputs = wrench_fn = None
     if a.closed_loop:
         inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
-    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=a.seed, inputs=inputs)
+    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed, inputs=inputs)
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
@@ -156,15 +163,16 @@ def main(argv=None):
     ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor=monitor, save_last=True,
                               save_top_k=a.keep_top_k, filename="{epoch}-{val_loss:.1f}-{val_rollout_mm:.1f}")
     trainer = L.Trainer(
-        max_epochs=a.epochs, logger=loggers, deterministic=True, enable_progress_bar=True,
+        max_epochs=a.epochs, logger=loggers, deterministic=True if a.accelerator == "cpu" else "warn",
+        enable_progress_bar=True,
         callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb], gradient_clip_val=1.0,
-        limit_train_batches=a.train_batches or 1.0, accelerator="cpu", devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
+        limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator, devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
         num_sanity_val_steps=0)
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)
     if ckpt_cb.best_model_path:
         state = torch.load(ckpt_cb.best_model_path, map_location="cpu", weights_only=False)["state_dict"]
         module.load_state_dict(state)
-    model = module.model.float().eval()
+    model = module.model.cpu().float().eval()
     t_train = time.perf_counter() - t0 - t_data
     metrics = evaluate_all(model, task, data, a)
     cmd = "python scripts/train_surrogate.py " + " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))

@@ -61,6 +61,19 @@ def test_bench_surrogate_quick(tmp_path):
     assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1
 
 
+def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):
+    """On the CPU twice (no GPU here): the script's timings and comparisons run; both sides agree exactly."""
+    res = run_script([str(ROOT / "scripts/bench/gpu.py"), "--quick", "--device", "cpu", "--threads", "1",
+                      "--window", "0.05", "--batches", "1", "4"], tmp_path)
+    assert res["device"] == "cpu" and res["threads"] == 1
+    assert [(r["dtype"], r["batch"]) for r in res["lgvi"]] == [("float64", 1), ("float64", 4), ("float32", 1),
+                                                                ("float32", 4)]
+    assert len(res["cosserat"]) == 1 and [r["batch"] for r in res["surrogate"]] == [1, 4]
+    for rows in (res["lgvi"], res["cosserat"], res["surrogate"]):
+        for r in rows:
+            assert r["ratio_dev_over_cpu"] > 0 and max(v for k, v in r.items() if k.startswith("max_abs_diff")) == 0
+
+
 def test_train_surrogate_quick_closed_loop(tmp_path):
     res = run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "magnetic_rod", "--closed-loop",
                       "--threads", "1", "--out", "ck.pt"], tmp_path)

@@ -1,0 +1,196 @@
+"""Benchmark: the batched solvers and surrogates on a GPU against the CPU, in the same process.
+
+    python scripts/bench/gpu.py [--quick] [--device cuda] [--threads N] [--batches 1 64 1024 16384]
+
+Three workloads, each timed on the CPU (``--threads`` threads) and on ``--device`` from the same
+inputs, with the largest difference between the two results after the timed steps:
+
+- LGVI eager step, the PDMS rod with a tip magnet of Paper I Table I.6 (10 elements, 11 nodes, gravity,
+  dt 9e-5 s), float64 and float32, batches of rods: node-steps per second;
+- the static Cosserat solve of the Paper II magnetic rod (13 nodes, eMNS-like linear field), float64,
+  a batch of fields (B0 times 1-1.3, turned up to 30 deg in plane), cold start: solves per second;
+- the shipped Simulation III surrogate (``checkpoints/semicircle_fast.pt``), float32, a free-running
+  rollout of a batch of histories: node-steps per second (modelled nodes x steps x batch).
+
+Timings synchronise the device before reading the clock. ``--device cpu`` runs both sides on the CPU
+(a check of the script where no GPU is seen). Prints human-readable lines and, last, one JSON line.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from physics import LGVI, Loads, UniformField
+from physics.cosserat_shooting import CosseratSolver
+from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
+
+DT = 9e-5
+GRAVITY = (0.0, -9.81, 0.0)
+
+
+@dataclass
+class Args:
+    quick: bool = False
+    device: str = "cuda"
+    threads: int = 0  # CPU threads (0: every core)
+    batches: list[int] = field(default_factory=list)  # empty: 1 and 64 with --quick, else 1, 64, 1024, 16384
+    window: float | None = None
+
+
+def timeit(fn, window: float, sync) -> float:
+    """Seconds per call of ``fn`` (one untimed call first; the device synchronised around the clock)."""
+    fn()
+    sync()
+    n, t0 = 0, time.perf_counter()
+    while True:
+        fn()
+        n += 1
+        sync()
+        el = time.perf_counter() - t0
+        if el >= window:
+            return el / n
+
+
+def sync_for(dev: torch.device):
+    return torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="short windows and batches up to 64")
+    ap.add_argument("--device", default=Args.device)
+    ap.add_argument("--threads", type=int, default=Args.threads)
+    ap.add_argument("--batches", type=int, nargs="+", default=[])
+    ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.3 quick, 1.5 full)")
+    a = Args(**vars(ap.parse_args(argv)))
+    dev = torch.device(a.device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no CUDA device is seen here (use --device cpu to check the script)")
+    if a.threads < 0:
+        raise SystemExit(f"--threads must be >= 0, got {a.threads}")
+    torch.set_num_threads(a.threads or os.cpu_count() or 1)
+    batches = a.batches or ([1, 64] if a.quick else [1, 64, 1024, 16384])
+    if any(b < 1 for b in batches):
+        raise SystemExit(f"--batches must be positive, got {batches}")
+    window = a.window or (0.3 if a.quick else 1.5)
+    cpu = torch.device("cpu")
+    sides = {"cpu": cpu, "dev": dev}
+    out = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu", "threads": torch.get_num_threads(),
+           "torch": torch.__version__, "cpu": platform.processor() or platform.machine(), "lgvi": [], "cosserat": [],
+           "surrogate": []}
+    print(f"device {out['device']} against the CPU ({out['threads']} threads), torch {out['torch']}")
+
+    # ---------------------------------------------------------------------- LGVI, PDMS rod + tip magnet
+    from physics import CircularSection, Magnet, Material, Rod
+    rod = Rod(length=0.06055, section=CircularSection(4e-3), material=Material(E=365.12e3, density=1101.0, nu=0.5),
+              n_elements=10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, 0.0109)),))
+    n = rod.n_nodes
+    for dtype in (torch.float64, torch.float32):
+        for batch in batches:
+            rate, ends = {}, {}
+            for side, d in sides.items():
+                sim = LGVI(rod, dt=DT, dtype=dtype, device=d,
+                           loads=Loads(gravity=GRAVITY, field=UniformField(torch.tensor([2e-3, 0.0, 0.0]))))
+                s0 = sim.initial_state()
+                v = torch.zeros(batch, n, 3, dtype=dtype, device=d)
+                v[..., 0] = torch.linspace(-0.05, 0.05, batch, dtype=dtype, device=d)[:, None] * rod.arclength.to(
+                    d, dtype) / rod.length
+                st0 = sim.initial_state(p=s0.p.expand(batch, n, 3), R=s0.R.expand(batch, n, 3, 3), v=v)
+                st = {"s": st0}
+
+                def step():
+                    st["s"] = sim.step(st["s"])
+
+                rate[side] = batch * n / timeit(step, window, sync_for(d))
+                ends[side], _ = sim.simulate(st0, n_steps=50, record_every=10**9)
+            diff = float((ends["dev"].p.cpu().double() - ends["cpu"].p.double()).abs().max())
+            row = {"dtype": str(dtype).removeprefix("torch."), "batch": batch, "nodes": n,
+                   "cpu_node_steps_per_s": rate["cpu"], "dev_node_steps_per_s": rate["dev"],
+                   "ratio_dev_over_cpu": rate["dev"] / rate["cpu"], "max_abs_diff_m_after_50_steps": diff}
+            out["lgvi"].append(row)
+            print(f"LGVI {row['dtype']} batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} node-steps/s "
+                  f"(x{row['ratio_dev_over_cpu']:.2f}); max |device - CPU| after 50 steps {diff:.1e} m")
+
+    # ---------------------------------------------------------------------- static Cosserat, Paper II magnetic rod
+    crod = paper2_magnetic_rod()
+    for batch in batches[:3] if not a.quick else batches[:1]:
+        g = torch.Generator().manual_seed(batch)
+        scale = 1 + 0.3 * torch.rand(batch, generator=g, dtype=torch.float64)
+        turn = math.radians(30) * (2 * torch.rand(batch, generator=g, dtype=torch.float64) - 1)
+        b0 = torch.tensor([4e-3, 1.5e-3, 0.0], dtype=torch.float64)
+        B0 = torch.stack((b0[0] * turn.cos() - b0[1] * turn.sin(), b0[0] * turn.sin() + b0[1] * turn.cos(),
+                          torch.zeros(batch, dtype=torch.float64)), -1) * scale[:, None]
+        rate, ys = {}, {}
+        for side, d in sides.items():
+            solver = CosseratSolver(crod.rod, device=d)
+            fld = LinearField(B0[:, None, :].to(d), torch.diag(torch.tensor([20e-3, -10e-3, -10e-3],
+                                                                             dtype=torch.float64)).to(d))
+            res = {}
+
+            def solve():
+                res["s"] = crod.solve(solver, field=fld)
+
+            rate[side] = batch / timeit(solve, window, sync_for(d))
+            ys[side] = res["s"].y.cpu()
+        diff = float((ys["dev"] - ys["cpu"]).abs().max())
+        row = {"dtype": "float64", "batch": batch, "nodes": crod.rod.n_nodes,
+               "cpu_solves_per_s": rate["cpu"], "dev_solves_per_s": rate["dev"],
+               "ratio_dev_over_cpu": rate["dev"] / rate["cpu"], "max_abs_diff_state": diff}
+        out["cosserat"].append(row)
+        print(f"Cosserat float64 batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} solves/s "
+              f"(x{row['ratio_dev_over_cpu']:.2f}); max |device - CPU| {diff:.1e}")
+
+    # ---------------------------------------------------------------------- surrogate rollout
+    from cmlearn.surrogate import Surrogate
+    engine = Surrogate.load(Path(__file__).resolve().parents[2] / "checkpoints" / "semicircle_fast.pt", task="semicircle")
+    model, task = engine.model.eval(), engine.task
+    W, K, H = engine.eta + 1, len(task.modeled), 20
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()
+    for batch in batches:
+        g = torch.Generator().manual_seed(batch)
+        hist0 = ref + 1e-4 * torch.randn(batch, W, *ref.shape, generator=g).cumsum(1)
+        wrench0 = 0.02 * torch.randn(batch, H, K, 3, generator=g)
+        rate, preds = {}, {}
+        for side, d in sides.items():
+            m = model.to(d)
+            hist, wrench, r = hist0.to(d), wrench0.to(d), ref.expand(batch, *ref.shape).to(d)
+            res = {}
+
+            @torch.no_grad()
+            def roll():
+                res["p"] = m.rollout(hist, wrench, r)
+
+            rate[side] = batch * K * H / timeit(roll, window, sync_for(d))
+            preds[side] = res["p"].cpu()
+        model.cpu()
+        diff = float((preds["dev"] - preds["cpu"]).abs().max())
+        row = {"dtype": "float32", "batch": batch, "modelled_nodes": K, "steps": H,
+               "cpu_node_steps_per_s": rate["cpu"], "dev_node_steps_per_s": rate["dev"],
+               "ratio_dev_over_cpu": rate["dev"] / rate["cpu"], "max_abs_diff_m": diff}
+        out["surrogate"].append(row)
+        print(f"surrogate float32 batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} node-steps/s "
+              f"(x{row['ratio_dev_over_cpu']:.2f}); max |device - CPU| {diff:.1e} m")
+
+    def rounded(x):
+        if isinstance(x, float):
+            return float(f"{x:.4g}") if math.isfinite(x) else str(x)
+        if isinstance(x, list):
+            return [rounded(v) for v in x]
+        if isinstance(x, dict):
+            return {k: rounded(v) for k, v in x.items()}
+        return x
+
+    print(json.dumps(rounded(out)))
+    return out
+
+
+if __name__ == "__main__":
+    main()

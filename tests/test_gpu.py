@@ -1,0 +1,164 @@
+"""On a CUDA device the physics and the surrogates give the CPU's answers (skipped where no GPU is seen).
+
+Each test runs one computation on the CPU and on the GPU from the same inputs and compares them at
+the dtype's precision: float64 solvers to ~1e-10 relative, float32 networks to ~1e-4 of their output
+scale, so that a tensor left on the wrong device, a dropped dtype or a device-dependent branch fails.
+"""
+import math
+import os
+
+import pytest
+import torch
+
+from physics import LGVI, Loads, Magnet, SolverError, UniformField
+from problems import pdms_rod, steel_like_rod
+
+# CMLEARN_GPU_TEST_DEVICE=cpu runs the same code on the CPU twice: a check of the tests themselves
+CUDA = torch.device(os.environ.get("CMLEARN_GPU_TEST_DEVICE", "cuda"))
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(CUDA.type == "cuda" and not torch.cuda.is_available(),
+                                                  reason="no CUDA device")]
+D = torch.float64
+
+
+def rel(a, b):
+    return float((a.cpu() - b.cpu()).norm() / b.cpu().norm().clamp_min(1e-300))
+
+
+# ------------------------------------------------------------------------------------------ LGVI
+def test_lgvi_batch_on_cuda_equals_cpu_with_gravity_and_a_rotating_field():
+    m, w, Bm = 0.0109, 2 * math.pi, 0.01
+    rod = pdms_rod(10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, m)),))
+
+    def field(t):
+        return torch.stack((Bm * torch.sin(w * t), torch.zeros_like(t), Bm * torch.cos(w * t)))
+
+    out = {}
+    for dev in ("cpu", CUDA):
+        sim = LGVI(rod, dt=0.8 * rod.stable_time_step().dt_max, device=dev,
+                   loads=Loads(gravity=(0.0, -9.81, 0.0), field=UniformField(field)))
+        s0 = sim.initial_state()
+        v = torch.zeros(4, rod.n_nodes, 3, dtype=D)
+        v[:, :, 0] = torch.linspace(-0.02, 0.02, 4, dtype=D)[:, None] * rod.arclength / rod.length
+        s0 = s0._replace(**{k: getattr(s0, k).expand(4, *getattr(s0, k).shape) for k in ("p", "R")})
+        s0 = sim.initial_state(p=s0.p, R=s0.R, v=v.to(dev))
+        out[torch.device(dev).type if dev == "cpu" else "gpu"], traj = sim.simulate(s0, n_steps=400, record_every=100, record_R=True)
+        assert traj.p.device.type == torch.device(dev).type
+    cpu, gpu = out["cpu"], out["gpu"]
+    assert float((gpu.p.cpu() - cpu.p).abs().max()) < 1e-12 * rod.length + 1e-14
+    assert float((gpu.R.cpu() - cpu.R).abs().max()) < 1e-10
+    assert float((cpu.p[:, -1] - cpu.p[:, 0]).norm(dim=-1).min()) > 0.5 * rod.length  # it moved, not a rest state
+
+
+def test_lgvi_float32_on_cuda_tracks_float64_and_divergence_names_the_step():
+    rod = pdms_rod(8)
+    g = (0.0, -9.81, 0.0)
+    ref, _ = (sim := LGVI(rod, dt=0.8 * rod.stable_time_step().dt_max, loads=Loads(gravity=g))).simulate(
+        sim.initial_state(), n_steps=1000, record_every=10**9)
+    f32 = LGVI(rod, dt=sim.dt, loads=Loads(gravity=g), dtype=torch.float32, device=CUDA)
+    st, _ = f32.simulate(f32.initial_state(), n_steps=1000, record_every=10**9)
+    assert st.p.dtype == torch.float32 and st.p.device.type == CUDA.type
+    sag = float(ref.p[-1, 1].abs())
+    assert sag > 1e-3 and float((st.p.cpu().double() - ref.p).abs().max()) < 1e-3 * sag
+    fast = LGVI(rod, dt=3 * rod.stable_time_step().dt_max, bc="free-free", stability="off", check_every=50,
+                device=CUDA)
+    s0 = fast.initial_state()
+    v = torch.zeros(rod.n_nodes, 3, dtype=D, device=CUDA)
+    v[:, 0] = torch.linspace(-1.0, 1.0, rod.n_nodes, dtype=D, device=CUDA)
+    with pytest.raises(SolverError, match=r"step=\d+, time=.*node=\d+"):
+        fast.simulate(fast.initial_state(p=s0.p, R=s0.R, v=v), n_steps=5000)
+
+
+# ------------------------------------------------------------------------------- static Cosserat
+def test_cosserat_shooting_on_cuda_equals_cpu_with_jacobian():
+    from physics import CircularSection, Material
+    from physics.cosserat import CosseratRod, MagnetDipole
+    from physics.cosserat_shooting import CosseratSolver
+
+    rod = CosseratRod.uniform(0.06, CircularSection(3e-3), Material(E=2e6, density=1100.0, nu=0.5), n_nodes=13,
+                              magnets=(MagnetDipole(0.06, (0.0, 0.0, 2e-3), mass=2e-4),))
+    Bs = torch.tensor([[0.0, 0.004, 0.001], [0.003, -0.002, 0.0], [0.0, 0.0, -0.005]], dtype=D)
+    F = torch.tensor([[1e-4, 0, 0], [0, 0, 0], [0, -2e-4, 1e-4]], dtype=D)
+    sol = {}
+    for dev in ("cpu", CUDA):
+        s = CosseratSolver(rod, device=dev).solve(field=UniformField(Bs[:, None, :].to(dev)), tip_force=F.to(dev),
+                                                  gravity=(0.0, -9.81, 0.0))
+        assert s.y.device.type == torch.device(dev).type
+        sol["cpu" if dev == "cpu" else "gpu"] = s
+    assert rel(sol["gpu"].y, sol["cpu"].y) < 1e-10
+    assert rel(sol["gpu"].jacobian, sol["cpu"].jacobian) < 1e-8
+    assert torch.equal(sol["gpu"].iterations.cpu(), sol["cpu"].iterations)
+
+
+# ------------------------------------------------------------------------------------ magnetics
+def test_dipoles_coils_and_emns_allocation_on_cuda_equal_cpu():
+    from physics.magnetics import CircularLoop
+    from physics.magnetics.emns import allocate_currents, six_coil_emns
+    from physics.magnetics.sources import DipoleSet
+
+    g = torch.Generator().manual_seed(3)
+    pos = 0.01 * torch.randn(40, 3, generator=g, dtype=D)
+    mom = torch.randn(40, 3, generator=g, dtype=D)
+    pts = 0.1 + 0.05 * torch.randn(2, 5, 3, generator=g, dtype=D)
+    mt = torch.randn(2, 5, 3, generator=g, dtype=D)
+    cpu = DipoleSet(pos, mom).force_torque(pts, mt)
+    gpu = DipoleSet(pos, mom).to(device=CUDA).force_torque(pts.to(CUDA), mt.to(CUDA))
+    for a, b in zip(gpu, cpu):
+        assert a.device.type == CUDA.type and rel(a, b) < 1e-12
+    loop = CircularLoop(centre=(0.0, 0.0, 0.01), axis=(0.0, 0.3, 1.0), radius=0.02, current=2.0)
+    for a, b in zip(loop.field_and_gradient(pts.to(CUDA)), loop.field_and_gradient(pts)):
+        assert a.device.type == CUDA.type and rel(a, b) < 1e-12
+    emns = six_coil_emns()
+    x = torch.tensor([[0.01, -0.02, 0.015]], dtype=D)
+    I = torch.linspace(-3.0, 3.0, 6, dtype=D)
+    for a, b in zip(emns.field_and_gradient(x.to(CUDA), I.to(CUDA)), emns.field_and_gradient(x, I)):
+        assert a.device.type == CUDA.type and rel(a, b) < 1e-12
+    A = emns.actuation_matrix(x)
+    target = A @ I
+    cur_cpu, _ = allocate_currents(A, target)
+    cur_gpu, _ = allocate_currents(A.to(CUDA), target.to(CUDA))
+    assert rel(cur_gpu, cur_cpu) < 1e-9 and rel(cur_cpu, I) < 1e-8
+
+
+# ------------------------------------------------------------------------------------ surrogates
+def test_shipped_surrogate_rollout_on_cuda_equals_cpu():
+    from cmlearn.surrogate import Surrogate
+
+    engine = Surrogate.load("checkpoints/semicircle_fast.pt")
+    task = engine.task
+    scene = task.scene_by_name(task.scene)
+    from dataclasses import replace
+    scene = replace(scene, duration=0.05)
+    rolled, _ = engine.run_scene(scene)  # CPU: frames (T, n_tracked, 3)
+    n = rolled.shape[0] - 1
+    W = engine.eta + 1
+    wrench = engine.scene_wrench(scene, n)
+    from cmlearn.data.windows import node_wrench
+    wk = node_wrench(wrench, task.wrench_nodes, task.modeled)
+    model = engine.model
+    hist, ref = rolled[:W][None], rolled[0][None]
+    with torch.no_grad():
+        cpu = model.rollout(hist, wk[None, W - 1:n], ref)
+        gpu = model.to(CUDA).rollout(hist.to(CUDA), wk[None, W - 1:n].to(CUDA), ref.to(CUDA))
+    model.cpu()
+    swing = float((cpu - rolled[None, :1]).abs().max())
+    assert gpu.device.type == CUDA.type and swing > 1e-5
+    assert float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing + 1e-7
+
+
+def test_train_surrogate_quick_on_gpu(tmp_path):
+    pytest.importorskip("lightning")
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import train_surrogate
+
+    out = tmp_path / "semi_gpu.pt"
+    acc = "gpu" if CUDA.type == "cuda" else "cpu"
+    meta = train_surrogate.main(["--task", "semicircle", "--quick", "--accelerator", acc, "--rest-anchor",
+                                 "--mirror", "zx", "--data-dir", str(tmp_path / "data"), "--out", str(out),
+                                 "--log-dir", str(tmp_path / "logs")])
+    assert out.exists() and meta["args"]["accelerator"] == acc
+    assert "diverged" not in meta["check"]
+    from cmlearn.surrogate import Surrogate
+    eng = Surrogate.load(out)
+    assert next(eng.model.parameters()).device.type == "cpu"
