@@ -141,6 +141,8 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("mirror_perm_modeled", torch.tensor([[slot[p[n]] for n in c.modeled] for p in perms],
                                                                  dtype=torch.long), persistent=False)  # (G, K)
         self.register_buffer("mirror_group", torch.arange(len(signs))[:, None], persistent=False)  # (G, 1)
+        for name in ("_feature_matrix", "_feature_rows", "_feature_blocks"):  # freeze_features; buffers, so that
+            self.register_buffer(name, None, persistent=False)                 # .to(device) moves them too
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
@@ -241,7 +243,7 @@ class NodeLSTMSurrogate(nn.Module):
         (image-major; frozen, the reflections are folded into the feature matrices)."""
         B, W = hist.shape[:2]
         G, K = self.mirror_sign.shape[0], self.idx_modeled.numel()
-        M = getattr(self, "_feature_matrix", None)
+        M = self._feature_matrix
         if M is None:
             if G > 1:
                 S = self.mirror_sign[:, None]

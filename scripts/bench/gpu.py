@@ -34,6 +34,7 @@ from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
 
 DT = 9e-5
 GRAVITY = (0.0, -9.81, 0.0)
+WORKLOADS = ("lgvi", "cosserat", "surrogate")
 
 
 @dataclass
@@ -41,6 +42,7 @@ class Args:
     quick: bool = False
     device: str = "cuda"
     threads: int = 0  # CPU threads (0: every core)
+    workloads: list[str] = field(default_factory=lambda: list(WORKLOADS))
     batches: list[int] = field(default_factory=list)  # empty: 1 and 64 with --quick, else 1, 64, 1024, 16384
     window: float | None = None
 
@@ -68,6 +70,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="short windows and batches up to 64")
     ap.add_argument("--device", default=Args.device)
     ap.add_argument("--threads", type=int, default=Args.threads)
+    ap.add_argument("--workloads", nargs="+", default=list(WORKLOADS), choices=WORKLOADS)
     ap.add_argument("--batches", type=int, nargs="+", default=[])
     ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.3 quick, 1.5 full)")
     a = Args(**vars(ap.parse_args(argv)))
@@ -93,7 +96,7 @@ def main(argv=None):
     rod = Rod(length=0.06055, section=CircularSection(4e-3), material=Material(E=365.12e3, density=1101.0, nu=0.5),
               n_elements=10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, 0.0109)),))
     n = rod.n_nodes
-    for dtype in (torch.float64, torch.float32):
+    for dtype in (torch.float64, torch.float32) if "lgvi" in a.workloads else ():
         for batch in batches:
             rate, ends = {}, {}
             for side, d in sides.items():
@@ -121,7 +124,7 @@ def main(argv=None):
 
     # ---------------------------------------------------------------------- static Cosserat, Paper II magnetic rod
     crod = paper2_magnetic_rod()
-    for batch in batches[:3] if not a.quick else batches[:1]:
+    for batch in (batches[:3] if not a.quick else batches[:1]) if "cosserat" in a.workloads else ():
         g = torch.Generator().manual_seed(batch)
         scale = 1 + 0.3 * torch.rand(batch, generator=g, dtype=torch.float64)
         turn = math.radians(30) * (2 * torch.rand(batch, generator=g, dtype=torch.float64) - 1)
@@ -154,7 +157,7 @@ def main(argv=None):
     model, task = engine.model.eval(), engine.task
     W, K, H = engine.eta + 1, len(task.modeled), 20
     ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()
-    for batch in batches:
+    for batch in batches if "surrogate" in a.workloads else ():
         g = torch.Generator().manual_seed(batch)
         hist0 = ref + 1e-4 * torch.randn(batch, W, *ref.shape, generator=g).cumsum(1)
         wrench0 = 0.02 * torch.randn(batch, H, K, 3, generator=g)
