@@ -198,7 +198,10 @@ def test_mirror_with_reversed_nodes_keeps_a_symmetric_loop_symmetric(tmp_path):
     for program in (False, True):
         assert torch.allclose(model(hist, w, ref, program=program), got, atol=1e-6)
         assert torch.allclose(model(hist[:, :, rev] * S, w, ref, program=program), got[:, pm] * S, atol=1e-6)
-    model.unfreeze_features()
+    # the frozen matrices follow the model's .to() (dtype here; the device in test_gpu) and are not saved
+    assert model.double()._feature_matrix.dtype == torch.float64 and "_feature_matrix" not in model.state_dict()
+    assert torch.allclose(model(hist.double(), w.double(), ref.double()), got.double(), atol=1e-6)
+    model.float().unfreeze_features()
     sym = 0.5 * (hist + hist[:, :, rev] * S)  # a symmetric history stays symmetric along a rollout
     out = model.rollout(sym, torch.zeros(1, 20, len(task.modeled), 3), ref)
     assert float((out[:, :, rev] * S - out).abs().max()) < 1e-6 and float((out - sym[:, -1:]).abs().max()) > 1e-4
