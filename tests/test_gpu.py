@@ -6,18 +6,22 @@ scale, so that a tensor left on the wrong device, a dropped dtype or a device-de
 """
 import math
 import os
+import sys
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
 
 from physics import LGVI, Loads, Magnet, SolverError, UniformField
-from problems import pdms_rod, steel_like_rod
+from problems import pdms_rod
 
 # CMLEARN_GPU_TEST_DEVICE=cpu runs the same code on the CPU twice: a check of the tests themselves
 CUDA = torch.device(os.environ.get("CMLEARN_GPU_TEST_DEVICE", "cuda"))
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(CUDA.type == "cuda" and not torch.cuda.is_available(),
                                                   reason="no CUDA device")]
 D = torch.float64
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def rel(a, b):
@@ -32,17 +36,16 @@ def test_lgvi_batch_on_cuda_equals_cpu_with_gravity_and_a_rotating_field():
     def field(t):
         return torch.stack((Bm * torch.sin(w * t), torch.zeros_like(t), Bm * torch.cos(w * t)))
 
+    v = torch.zeros(4, rod.n_nodes, 3, dtype=D)  # a batch of four rods, each swung differently
+    v[:, :, 0] = torch.linspace(-0.02, 0.02, 4, dtype=D)[:, None] * rod.arclength / rod.length
     out = {}
-    for dev in ("cpu", CUDA):
+    for side, dev in (("cpu", torch.device("cpu")), ("gpu", CUDA)):
         sim = LGVI(rod, dt=0.8 * rod.stable_time_step().dt_max, device=dev,
                    loads=Loads(gravity=(0.0, -9.81, 0.0), field=UniformField(field)))
         s0 = sim.initial_state()
-        v = torch.zeros(4, rod.n_nodes, 3, dtype=D)
-        v[:, :, 0] = torch.linspace(-0.02, 0.02, 4, dtype=D)[:, None] * rod.arclength / rod.length
-        s0 = s0._replace(**{k: getattr(s0, k).expand(4, *getattr(s0, k).shape) for k in ("p", "R")})
-        s0 = sim.initial_state(p=s0.p, R=s0.R, v=v.to(dev))
-        out[torch.device(dev).type if dev == "cpu" else "gpu"], traj = sim.simulate(s0, n_steps=400, record_every=100, record_R=True)
-        assert traj.p.device.type == torch.device(dev).type
+        s0 = sim.initial_state(p=s0.p.expand(4, -1, -1), R=s0.R.expand(4, -1, -1, -1), v=v.to(dev))
+        out[side], traj = sim.simulate(s0, n_steps=400, record_every=100, record_R=True)
+        assert traj.p.device.type == dev.type
     cpu, gpu = out["cpu"], out["gpu"]
     assert float((gpu.p.cpu() - cpu.p).abs().max()) < 1e-12 * rod.length + 1e-14
     assert float((gpu.R.cpu() - cpu.R).abs().max()) < 1e-10
@@ -79,11 +82,11 @@ def test_cosserat_shooting_on_cuda_equals_cpu_with_jacobian():
     Bs = torch.tensor([[0.0, 0.004, 0.001], [0.003, -0.002, 0.0], [0.0, 0.0, -0.005]], dtype=D)
     F = torch.tensor([[1e-4, 0, 0], [0, 0, 0], [0, -2e-4, 1e-4]], dtype=D)
     sol = {}
-    for dev in ("cpu", CUDA):
+    for side, dev in (("cpu", torch.device("cpu")), ("gpu", CUDA)):
         s = CosseratSolver(rod, device=dev).solve(field=UniformField(Bs[:, None, :].to(dev)), tip_force=F.to(dev),
                                                   gravity=(0.0, -9.81, 0.0))
-        assert s.y.device.type == torch.device(dev).type
-        sol["cpu" if dev == "cpu" else "gpu"] = s
+        assert s.y.device.type == dev.type
+        sol[side] = s
     assert rel(sol["gpu"].y, sol["cpu"].y) < 1e-10
     assert rel(sol["gpu"].jacobian, sol["cpu"].jacobian) < 1e-8
     assert torch.equal(sol["gpu"].iterations.cpu(), sol["cpu"].iterations)
@@ -121,24 +124,19 @@ def test_dipoles_coils_and_emns_allocation_on_cuda_equal_cpu():
 
 # ------------------------------------------------------------------------------------ surrogates
 def test_shipped_surrogate_rollout_on_cuda_equals_cpu():
+    from cmlearn.data.windows import node_wrench
     from cmlearn.surrogate import Surrogate
 
-    engine = Surrogate.load("checkpoints/semicircle_fast.pt")
-    task = engine.task
-    scene = task.scene_by_name(task.scene)
-    from dataclasses import replace
-    scene = replace(scene, duration=0.05)
-    rolled, _ = engine.run_scene(scene)  # CPU: frames (T, n_tracked, 3)
+    engine = Surrogate.load(ROOT / "checkpoints" / "semicircle_fast.pt")
+    task, model, W = engine.task, engine.model, engine.eta + 1
+    scene = replace(task.scene_by_name(task.scene), duration=0.05)
+    rolled, _ = engine.run_scene(scene)  # CPU: frames (T, n_tracked, 3), the history to start from
     n = rolled.shape[0] - 1
-    W = engine.eta + 1
-    wrench = engine.scene_wrench(scene, n)
-    from cmlearn.data.windows import node_wrench
-    wk = node_wrench(wrench, task.wrench_nodes, task.modeled)
-    model = engine.model
+    wk = node_wrench(engine.scene_wrench(scene, n), task.wrench_nodes, task.modeled)[None, W - 1:n]
     hist, ref = rolled[:W][None], rolled[0][None]
     with torch.no_grad():
-        cpu = model.rollout(hist, wk[None, W - 1:n], ref)
-        gpu = model.to(CUDA).rollout(hist.to(CUDA), wk[None, W - 1:n].to(CUDA), ref.to(CUDA))
+        cpu = model.rollout(hist, wk, ref)
+        gpu = model.to(CUDA).rollout(hist.to(CUDA), wk.to(CUDA), ref.to(CUDA))
     model.cpu()
     swing = float((cpu - rolled[None, :1]).abs().max())
     assert gpu.device.type == CUDA.type and swing > 1e-5
@@ -147,10 +145,9 @@ def test_shipped_surrogate_rollout_on_cuda_equals_cpu():
 
 def test_train_surrogate_quick_on_gpu(tmp_path):
     pytest.importorskip("lightning")
-    import sys
-    from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    sys.path.insert(0, str(ROOT / "scripts"))
     import train_surrogate
+    from cmlearn.surrogate import Surrogate
 
     out = tmp_path / "semi_gpu.pt"
     acc = "gpu" if CUDA.type == "cuda" else "cpu"
@@ -159,6 +156,5 @@ def test_train_surrogate_quick_on_gpu(tmp_path):
                                  "--log-dir", str(tmp_path / "logs")])
     assert out.exists() and meta["args"]["accelerator"] == acc
     assert "diverged" not in meta["check"]
-    from cmlearn.surrogate import Surrogate
     eng = Surrogate.load(out)
     assert next(eng.model.parameters()).device.type == "cpu"
