@@ -8,7 +8,8 @@ inputs, with the largest difference between the two results after the timed step
 - LGVI eager step, the PDMS rod with a tip magnet of Paper I Table I.6 (10 elements, 11 nodes, gravity,
   dt 9e-5 s), float64 and float32, batches of rods: node-steps per second;
 - the static Cosserat solve of the Paper II magnetic rod (13 nodes, eMNS-like linear field), float64,
-  a batch of fields (B0 times 1-1.3, turned up to 30 deg in plane), cold start: solves per second;
+  a batch of fields (B0 times 1-1.3, turned up to 30 deg in plane), cold start: solves per second
+  (the first three batch sizes only; ``--quick``: the first);
 - the shipped Simulation III surrogate (``checkpoints/semicircle_fast.pt``), float32, a free-running
   rollout of a batch of histories: node-steps per second (modelled nodes x steps x batch).
 
