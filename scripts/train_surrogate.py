@@ -6,8 +6,9 @@ Generates the dataset with the physics if ``data/<task>_v<V>_s<seed>.pt`` is mis
 Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, checkpoint selection
 and early stopping on the validation windows' rollout loss or, with ``--select-by rollout``, on a
 free-running rollout of the whole validation trajectories, ``--resume`` from a Lightning checkpoint, ``--ddp`` for
-multi-process data parallel, ``--accelerator gpu`` to train on a GPU; the checkpoint is always written for the CPU), evaluates one-step and free-running errors on the printed scene's
-unseen last 40 % and on the held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
+multi-process data parallel, ``--accelerator gpu`` to train on a GPU; the checkpoint is always written for
+the CPU), evaluates one-step and free-running errors on the printed scene's unseen last 40 % and on the
+held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
 the metrics and this exact command. Prints one JSON line last.
 """
 from __future__ import annotations
@@ -63,7 +64,7 @@ class Args:
     out: str = ""
     log_dir: str = "logs"
     resume: str = ""
-    accelerator: str = "cpu"  # cpu, gpu or auto (Lightning's); off the CPU, algorithms without a deterministic kernel warn
+    accelerator: str = "cpu"  # cpu, gpu or auto (Lightning's); off the CPU, ops without a deterministic kernel warn
     ddp: bool = False
     devices: int = 1
     quick: bool = False
@@ -146,7 +147,8 @@ def main(argv=None):
     inputs = wrench_fn = None
     if a.closed_loop:
         inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
-    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed, inputs=inputs)
+    dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
+                             inputs=inputs)
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
@@ -163,11 +165,11 @@ def main(argv=None):
     ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor=monitor, save_last=True,
                               save_top_k=a.keep_top_k, filename="{epoch}-{val_loss:.1f}-{val_rollout_mm:.1f}")
     trainer = L.Trainer(
-        max_epochs=a.epochs, logger=loggers, deterministic=True if a.accelerator == "cpu" else "warn",
-        enable_progress_bar=True,
-        callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb], gradient_clip_val=1.0,
-        limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator, devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10,
-        num_sanity_val_steps=0)
+        max_epochs=a.epochs, logger=loggers, enable_progress_bar=True,
+        deterministic=True if a.accelerator == "cpu" else "warn",
+        callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb],
+        gradient_clip_val=1.0, limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator,
+        devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10, num_sanity_val_steps=0)
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)
     if ckpt_cb.best_model_path:
         state = torch.load(ckpt_cb.best_model_path, map_location="cpu", weights_only=False)["state_dict"]

@@ -85,17 +85,17 @@ def main(argv=None):
     if any(b < 1 for b in batches):
         raise SystemExit(f"--batches must be positive, got {batches}")
     window = a.window or (0.3 if a.quick else 1.5)
-    cpu = torch.device("cpu")
-    sides = {"cpu": cpu, "dev": dev}
-    out = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu", "threads": torch.get_num_threads(),
-           "torch": torch.__version__, "cpu": platform.processor() or platform.machine(), "lgvi": [], "cosserat": [],
-           "surrogate": []}
+    sides = {"cpu": torch.device("cpu"), "dev": dev}
+    out = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+           "threads": torch.get_num_threads(), "torch": torch.__version__,
+           "cpu": platform.processor() or platform.machine(), "lgvi": [], "cosserat": [], "surrogate": []}
     print(f"device {out['device']} against the CPU ({out['threads']} threads), torch {out['torch']}")
 
     # ---------------------------------------------------------------------- LGVI, PDMS rod + tip magnet
     from physics import CircularSection, Magnet, Material, Rod
-    rod = Rod(length=0.06055, section=CircularSection(4e-3), material=Material(E=365.12e3, density=1101.0, nu=0.5),
-              n_elements=10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, 0.0109)),))
+    rod = Rod(length=0.06055, section=CircularSection(4e-3), n_elements=10,
+              material=Material(E=365.12e3, density=1101.0, nu=0.5),
+              magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, 0.0109)),))
     n = rod.n_nodes
     for dtype in (torch.float64, torch.float32) if "lgvi" in a.workloads else ():
         for batch in batches:
@@ -154,7 +154,8 @@ def main(argv=None):
 
     # ---------------------------------------------------------------------- surrogate rollout
     from cmlearn.surrogate import Surrogate
-    engine = Surrogate.load(Path(__file__).resolve().parents[2] / "checkpoints" / "semicircle_fast.pt", task="semicircle")
+    engine = Surrogate.load(Path(__file__).resolve().parents[2] / "checkpoints" / "semicircle_fast.pt",
+                            task="semicircle")
     model, task = engine.model.eval(), engine.task
     W, K, H = engine.eta + 1, len(task.modeled), 20
     ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()
