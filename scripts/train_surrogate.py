@@ -5,7 +5,8 @@
 Generates the dataset with the physics if ``data/<task>_v<V>_s<seed>.pt`` is missing, trains with
 Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, checkpoint selection
 and early stopping on the validation windows' rollout loss or, with ``--select-by rollout``, on a
-free-running rollout of the whole validation trajectories, ``--resume`` from a Lightning checkpoint, ``--ddp`` for
+free-running rollout of the whole validation trajectories, ``--resume`` from a Lightning checkpoint, ``--init-from``
+a shipped checkpoint's weights (fine-tuning with a fresh schedule), ``--ddp`` for
 multi-process data parallel, ``--accelerator gpu`` to train on a GPU; the checkpoint is always written for
 the CPU), evaluates one-step and free-running errors on the printed scene's unseen last 40 % and on the
 held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
@@ -64,6 +65,7 @@ class Args:
     out: str = ""
     log_dir: str = "logs"
     resume: str = ""
+    init_from: str = ""  # a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)
     accelerator: str = "cpu"  # cpu, gpu or auto (Lightning's); off the CPU, ops without a deterministic kernel warn
     ddp: bool = False
     devices: int = 1
@@ -87,6 +89,9 @@ def parse(argv=None) -> Args:
         ap.error(f"--accelerator must be cpu, gpu or auto, got {a.accelerator!r}")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
+    if a.init_from and a.resume:
+        ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
+                 "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
     if a.select_by not in SELECT_METRICS:
         ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
@@ -97,6 +102,23 @@ def parse(argv=None) -> Args:
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
     return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor, mirror=a.mirror))
+
+
+def init_weights(model: NodeLSTMSurrogate, task, data: dict, path: str) -> None:
+    """Start from the weights (scales included) of a cmlearn checkpoint of the same task, architecture and
+    data: a fine-tuning run with its own schedule. SystemExit naming --init-from when they differ."""
+    from cmlearn.surrogate.checkpoint import CheckpointError, load_checkpoint
+    try:
+        init, meta = load_checkpoint(path, task=task.name)
+    except CheckpointError as e:
+        raise SystemExit(f"--init-from: {e}") from None
+    if init.config != model.config:
+        raise SystemExit(f"--init-from: {path} has architecture {init.config.to_dict()}, this run builds "
+                         f"{model.config.to_dict()} (pass the same --eta, --hidden, --rest-anchor, --mirror)")
+    if meta.get("data_hash") != data["meta"]["data_hash"]:
+        raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
+                         f"{data['meta']['data_hash']} (its scales would not fit)")
+    model.load_state_dict(init.state_dict())
 
 
 def dataset_for(task, a: Args) -> dict:
@@ -151,6 +173,8 @@ def main(argv=None):
                              inputs=inputs)
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
+    if a.init_from:
+        init_weights(model, task, data, a.init_from)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight, wrench_fn=wrench_fn)

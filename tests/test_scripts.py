@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -103,7 +104,24 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         want = [meta["metrics"][case]["free_running"]["node"][ax]["max_mm"] for ax in "xyz"]
         assert errs == pytest.approx(want, rel=1e-4, abs=1e-6)
     assert "| epoch | val_loss | val_rollout_mm |" in (tmp_path / "sel.md").read_text()
+    # --init-from starts from those weights, scales included: at lr 0 the run leaves them as they are
+    run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
+                "--rest-anchor", "--mirror", "zx", "--init-from", "ck.pt", "--lr", "0", "--epochs", "1",
+                "--out", "ft.pt", "--log-dir", "logs_ft"], tmp_path)
+    src, ft = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("ck.pt", "ft.pt"))
+    assert src.keys() == ft.keys() and all(torch.equal(src[k], ft[k]) for k in src)
+    ft_meta = json.loads((tmp_path / "ft.json").read_text())
+    for case in rep["cases"]:  # the same errors (the LGVI's wall time aside)
+        assert {m: ft_meta["metrics"][case][m] for m in ("one_step", "free_running")} == \
+            {m: meta["metrics"][case][m] for m in ("one_step", "free_running")}
+    assert "--init-from ck.pt" in ft_meta["command"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
+                       (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file"),
+                       (["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude")):
+        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1",
+                              *extra], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
     bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--select-by", "loss"],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "--select-by must be one of" in bad.stderr
