@@ -15,6 +15,7 @@ the metrics and this exact command. Prints one JSON line last.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shlex
 import sys
@@ -104,9 +105,10 @@ def build_model(task, a: Args) -> NodeLSTMSurrogate:
     return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor, mirror=a.mirror))
 
 
-def init_weights(model: NodeLSTMSurrogate, task, data: dict, path: str) -> None:
+def init_weights(model: NodeLSTMSurrogate, task, data: dict, path: str) -> dict:
     """Start from the weights (scales included) of a cmlearn checkpoint of the same task, architecture and
-    data: a fine-tuning run with its own schedule. SystemExit naming --init-from when they differ."""
+    data: a fine-tuning run with its own schedule. SystemExit naming --init-from when they differ. Returns
+    the provenance the new checkpoint records (the file's path and SHA-256, and the command that made it)."""
     from cmlearn.surrogate.checkpoint import CheckpointError, load_checkpoint
     try:
         init, meta = load_checkpoint(path, task=task.name)
@@ -119,6 +121,7 @@ def init_weights(model: NodeLSTMSurrogate, task, data: dict, path: str) -> None:
         raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                          f"{data['meta']['data_hash']} (its scales would not fit)")
     model.load_state_dict(init.state_dict())
+    return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command")}
 
 
 def dataset_for(task, a: Args) -> dict:
@@ -173,8 +176,7 @@ def main(argv=None):
                              inputs=inputs)
     model = build_model(task, a)
     model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
-    if a.init_from:
-        init_weights(model, task, data, a.init_from)
+    init_from = init_weights(model, task, data, a.init_from) if a.init_from else None
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight, wrench_fn=wrench_fn)
@@ -208,7 +210,7 @@ def main(argv=None):
             "data_hash": data["meta"]["data_hash"], "data_seed": a.seed, "n_variants": a.variants,
             "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
             "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
-            "data_wall_s": t_data}
+            "data_wall_s": t_data, "init_from": init_from}
     from cmlearn.surrogate import Surrogate, SurrogateDivergence
     from cmlearn.surrogate.evaluate import short_check
     # 50 surrogate steps: short enough that even an unstable rollout is reproducible bit for bit

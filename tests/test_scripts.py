@@ -1,4 +1,5 @@
 """Smoke runs of the scripts with tiny budgets: they run and end with one JSON line."""
+import hashlib
 import json
 import os
 import subprocess
@@ -114,7 +115,8 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     for case in rep["cases"]:  # the same errors (the LGVI's wall time aside)
         assert {m: ft_meta["metrics"][case][m] for m in ("one_step", "free_running")} == \
             {m: meta["metrics"][case][m] for m in ("one_step", "free_running")}
-    assert "--init-from ck.pt" in ft_meta["command"]
+    assert "--init-from ck.pt" in ft_meta["command"] and ft_meta["init_from"]["command"] == meta["command"]
+    assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file"),
