@@ -90,6 +90,8 @@ def parse(argv=None) -> Args:
         ap.error(f"--accelerator must be cpu, gpu or auto, got {a.accelerator!r}")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
+    if a.init_from and not Path(a.init_from).is_file():  # before any data is generated
+        ap.error(f"--init-from: {a.init_from}: no such checkpoint file")
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
