@@ -90,8 +90,6 @@ def parse(argv=None) -> Args:
         ap.error(f"--accelerator must be cpu, gpu or auto, got {a.accelerator!r}")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
-    if a.init_from and not Path(a.init_from).is_file():  # before any data is generated
-        ap.error(f"--init-from: {a.init_from}: no such checkpoint file")
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
@@ -103,22 +101,32 @@ def parse(argv=None) -> Args:
     return a
 
 
+def model_config(task, a: Args):
+    return task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor, mirror=a.mirror)
+
+
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
-    return NodeLSTMSurrogate(task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor, mirror=a.mirror))
+    return NodeLSTMSurrogate(model_config(task, a))
 
 
-def init_weights(model: NodeLSTMSurrogate, task, data: dict, path: str) -> dict:
-    """Start from the weights (scales included) of a cmlearn checkpoint of the same task, architecture and
-    data: a fine-tuning run with its own schedule. SystemExit naming --init-from when they differ. Returns
-    the provenance the new checkpoint records (the file's path and SHA-256, and the command that made it)."""
+def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
+    """The ``--init-from`` checkpoint, checked for this run's task and architecture before any data is
+    generated; SystemExit naming --init-from otherwise."""
     from cmlearn.surrogate.checkpoint import CheckpointError, load_checkpoint
     try:
-        init, meta = load_checkpoint(path, task=task.name)
+        init, meta = load_checkpoint(a.init_from, task=task.name)
     except CheckpointError as e:
         raise SystemExit(f"--init-from: {e}") from None
-    if init.config != model.config:
-        raise SystemExit(f"--init-from: {path} has architecture {init.config.to_dict()}, this run builds "
-                         f"{model.config.to_dict()} (pass the same --eta, --hidden, --rest-anchor, --mirror)")
+    if init.config != model_config(task, a):
+        raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
+                         f"{model_config(task, a).to_dict()} (pass the same --eta, --hidden, --rest-anchor, --mirror)")
+    return init, meta
+
+
+def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, path: str) -> dict:
+    """Fine-tuning: ``model`` takes ``init``'s weights, scales included (so they must come from the same
+    data), and starts a run with its own schedule. Returns the provenance the new checkpoint records (the
+    file's path and SHA-256, and the command that made it)."""
     if meta.get("data_hash") != data["meta"]["data_hash"]:
         raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                          f"{data['meta']['data_hash']} (its scales would not fit)")
@@ -168,6 +176,7 @@ def main(argv=None):
     if a.closed_loop and not task.custom:
         raise SystemExit(f"--closed-loop: task {task.name!r} has no wrench model of its own (its node forces are "
                          "given, not computed from the pose)")
+    init = load_init(task, a) if a.init_from else None
     t0 = time.perf_counter()
     data = dataset_for(task, a)
     t_data = time.perf_counter() - t0
@@ -177,8 +186,11 @@ def main(argv=None):
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
                              inputs=inputs)
     model = build_model(task, a)
-    model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
-    init_from = init_weights(model, task, data, a.init_from) if a.init_from else None
+    init_from = None
+    if init is None:
+        model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
+    else:  # the starting checkpoint's weights and scales
+        init_from = start_from(model, *init, data, a.init_from)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight, wrench_fn=wrench_fn)
