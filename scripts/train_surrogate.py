@@ -20,13 +20,13 @@ import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import torch
 
 import cmlearn
-from cmlearn.data import dataset_path, generate_dataset, get_task, load_dataset
+from cmlearn.data import TASKS, dataset_path, generate_dataset, get_task, load_dataset
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
@@ -36,65 +36,72 @@ from cmlearn.surrogate.evaluate import evaluate, heldout_case, interest_slots
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
 
 
+def opt(default, help: str, choices=None):
+    """A dataclass field whose ``help`` is the argument's ``--help`` text (and ``choices`` its valid values)."""
+    return field(default=default, metadata={"help": help, "choices": choices})
+
+
 @dataclass
 class Args:
-    task: str = "semicircle"
-    variants: int = 24
-    seed: int = 0  # the dataset's seed (its random variants); also the training seed unless --train-seed is given
-    train_seed: int = -1  # seeds the initial weights and the batch order (-1: --seed), for runs on the same data
-    eta: int = 2
-    hidden: int = 48
-    rest_anchor: bool = False  # the output at rest subtracted (scenes whose initial shape is an equilibrium)
-    mirror: str = ""  # axis letters (x, y, z; e.g. zx): the step made equivariant under those reflections of the task
-    horizon: int = 32
-    warmup_epochs: int = 15
-    epochs: int = 60
-    batch_size: int = 64
-    train_batches: int = 0  # batches per epoch (0: all windows)
-    lr: float = 3e-3
-    weight_decay: float = 1e-4
-    noise: float = 0.0  # training-noise std on the history, in units of each node's step scale
-    step_weighting: str = "uniform"  # rollout-loss weights per step: uniform or inverse_square (1/h^2)
-    one_step_weight: float = 0.0  # weight of a teacher-forced one-step loss term beside the rollout loss
-    closed_loop: bool = False  # training rollouts compute their own wrench (tasks whose custom module can)
-    patience: int = 15
-    select_by: str = "val_loss"  # checkpoint selection and early stopping: val_loss or rollout (val_rollout_mm)
-    select_steps: int = 0  # steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)
-    keep_top_k: int = 1  # Lightning checkpoints kept by the selection metric (-1: every epoch)
-    threads: int = 2
-    data_dir: str = "data"
-    out: str = ""
-    log_dir: str = "logs"
-    resume: str = ""
-    init_from: str = ""  # a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)
-    accelerator: str = "cpu"  # cpu, gpu or auto (Lightning's); off the CPU, ops without a deterministic kernel warn
-    ddp: bool = False
-    devices: int = 1
-    quick: bool = False
-    duration: float = 0.0
+    task: str = opt("semicircle", "the scene to learn", sorted(TASKS))
+    variants: int = opt(24, "LGVI trajectories generated for the dataset (random load/shape variants)")
+    seed: int = opt(0, "the dataset's seed (its random variants); also the training seed unless --train-seed")
+    train_seed: int = opt(-1, "seeds the initial weights and the batch order (-1: --seed), for runs on the same data")
+    eta: int = opt(2, "pose-history length each node's LSTM sees (the thesis's eta, >= 2)")
+    hidden: int = opt(48, "LSTM hidden size per modelled node")
+    rest_anchor: bool = opt(False, "subtract the model's output at rest (scenes whose initial shape is an equilibrium)")
+    mirror: str = opt("", "axis letters (x, y, z; e.g. zx): make the step equivariant under those reflections "
+                          "of the task")
+    horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
+    warmup_epochs: int = opt(15, "epochs over which the rollout horizon grows linearly up to --horizon")
+    epochs: int = opt(60, "maximum number of epochs")
+    batch_size: int = opt(64, "windows per optimiser step")
+    train_batches: int = opt(0, "batches per epoch (0: all windows)")
+    lr: float = opt(3e-3, "AdamW learning rate, cosine-annealed to 5 %% of it over --epochs")
+    weight_decay: float = opt(1e-4, "AdamW weight decay")
+    noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale")
+    step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
+                              ["uniform", "inverse_square"])
+    one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss")
+    closed_loop: bool = opt(False, "training rollouts compute their own wrench (tasks whose custom module can)")
+    patience: int = opt(15, "early stopping: epochs without improvement of the selection metric")
+    select_by: str = opt("val_loss", "checkpoint selection and early stopping (rollout: val_rollout_mm)",
+                         sorted(SELECT_METRICS))
+    select_steps: int = opt(0, "steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)")
+    keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)")
+    threads: int = opt(2, "torch CPU threads")
+    data_dir: str = opt("data", "where datasets are generated and cached")
+    out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)")
+    log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints")
+    resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues")
+    init_from: str = opt("", "a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)")
+    accelerator: str = opt("cpu", "Lightning's accelerator; off the CPU, ops without a deterministic kernel warn",
+                           ["cpu", "gpu", "auto"])
+    ddp: bool = opt(False, "multi-process data parallel (Lightning's DDP strategy) over --devices")
+    devices: int = opt(1, "processes / devices for --ddp")
+    quick: bool = opt(False, "smoke-test budget: a short scene, at most 3 variants, two epochs")
+    duration: float = opt(0.0, "simulated seconds per trajectory (0: the scene's own)")
 
 
 def parse(argv=None) -> Args:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     for f in fields(Args):
+        flag, help = f"--{f.name.replace('_', '-')}", f.metadata["help"]
         if f.type in ("bool", bool):
-            ap.add_argument(f"--{f.name.replace('_', '-')}", action="store_true")
+            ap.add_argument(flag, action="store_true", help=help)
         else:
-            ap.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
+            ap.add_argument(flag, type=type(f.default), default=f.default, help=help, choices=f.metadata["choices"])
     a = Args(**vars(ap.parse_args(argv)))
     try:
         get_task(a.task).reflections(a.mirror)
     except ValueError as e:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
-    if a.accelerator not in ("cpu", "gpu", "auto"):
-        ap.error(f"--accelerator must be cpu, gpu or auto, got {a.accelerator!r}")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
-    if a.select_by not in SELECT_METRICS:
-        ap.error(f"--select-by must be one of {sorted(SELECT_METRICS)}, got {a.select_by!r}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
         a.variants, a.epochs, a.warmup_epochs, a.horizon = min(a.variants, 3), min(a.epochs, 2), 1, min(a.horizon, 4)
         a.duration = a.duration or 0.3
@@ -123,15 +130,23 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
     return init, meta
 
 
-def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, path: str) -> dict:
-    """Fine-tuning: ``model`` takes ``init``'s weights, scales included (so they must come from the same
-    data), and starts a run with its own schedule. Returns the provenance the new checkpoint records (the
-    file's path and SHA-256, and the command that made it)."""
+SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_scale")
+
+
+def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str) -> dict:
+    """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
+    schedule. The scales must fit this run's data: the same data hash, or (regenerated data can differ in
+    its last bits, for example on another machine) the scales this data gives within 1e-5. Returns the provenance
+    the new checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
     if meta.get("data_hash") != data["meta"]["data_hash"]:
-        raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
-                         f"{data['meta']['data_hash']} (its scales would not fit)")
+        model.set_scales(dm.train_positions(), dm.wrench, float(init.length_scale))
+        off = max(float(((getattr(model, k) - getattr(init, k)).abs() / getattr(init, k).abs()).max()) for k in SCALES)
+        if off > 1e-5:
+            raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
+                             f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative)")
     model.load_state_dict(init.state_dict())
-    return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command")}
+    return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
+            "data_hash": meta.get("data_hash")}
 
 
 def dataset_for(task, a: Args) -> dict:
@@ -190,7 +205,7 @@ def main(argv=None):
     if init is None:
         model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     else:  # the starting checkpoint's weights and scales
-        init_from = start_from(model, *init, data, a.init_from)
+        init_from = start_from(model, *init, data, dm, a.init_from)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight, wrench_fn=wrench_fn)

@@ -124,23 +124,60 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1",
                               *extra], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
-    bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--select-by", "loss"],
-                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-    assert bad.returncode != 0 and "--select-by must be one of" in bad.stderr
+    for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
+                       (["--task", "rod"], "argument --task: invalid choice: 'rod'")):
+        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
+    usage = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--help"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600).stdout
+    usage = " ".join(usage.split())  # every option explained, whatever the terminal width
+    assert "--rest-anchor subtract the model's output at rest" in usage and usage.count("(default:") >= 30
     for mirror in ("w", "zz"):
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", mirror],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and "--mirror must name task 'semicircle'" in bad.stderr
 
 
+def load_script(name):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(f"script_{name}", ROOT / f"scripts/{name}.py")
+    mod = sys.modules[f"script_{name}"] = importlib.util.module_from_spec(spec)  # dataclasses look it up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
+    """Regenerated data that differs in its last bits (another hash) but gives the same scales is
+    fine-tuned on; data whose scales differ is refused."""
+    from types import SimpleNamespace
+    from cmlearn.data import get_task
+    ts = load_script("train_surrogate")
+    task, a = get_task("semicircle"), ts.parse(["--quick"])
+    gen = torch.Generator().manual_seed(0)
+    n = len(task.tracked)
+    trajs = [torch.randn(50, n, 3, generator=gen, dtype=torch.float64).cumsum(0) * 1e-3 for _ in range(3)]
+    wrench = torch.randn(3, 49, 1, 3, generator=gen, dtype=torch.float64)
+    init = ts.build_model(task, a)
+    init.set_scales(trajs, wrench, 0.6)
+    (tmp_path / "ck.pt").write_bytes(b"weights")
+    meta, data = {"data_hash": "a" * 16, "command": "train"}, {"meta": {"data_hash": "b" * 16}}
+    for factor, fits in ((1 + 1e-12, True), (1.001, False)):
+        dm = SimpleNamespace(train_positions=lambda: [p * factor for p in trajs], wrench=wrench)
+        model = ts.build_model(task, a)
+        if fits:
+            prov = ts.start_from(model, init, meta, data, dm, str(tmp_path / "ck.pt"))
+            assert prov["data_hash"] == "a" * 16 and prov["command"] == "train"
+            assert all(torch.equal(v, init.state_dict()[k]) for k, v in model.state_dict().items())
+        else:
+            with pytest.raises(SystemExit, match="its scales differ by up to 1.0e-03"):
+                ts.start_from(model, init, meta, data, dm, str(tmp_path / "ck.pt"))
+
+
 def test_surrogate_report(tmp_path):
     res = run_script([str(ROOT / "scripts/report_surrogates.py"), "--out", "s.md"], tmp_path)
     assert (tmp_path / "s.md").exists() and len(res["rows"]) >= 3
-    import importlib.util  # hand-written notes below the marker survive a regeneration
-    spec = importlib.util.spec_from_file_location("report_surrogates", ROOT / "scripts/report_surrogates.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    NOTES = mod.NOTES
+    NOTES = load_script("report_surrogates").NOTES  # hand-written notes below the marker survive a regeneration
     text = (tmp_path / "s.md").read_text()
     assert NOTES not in text
     (tmp_path / "s.md").write_text(text.replace("| scene |", "| stale |") + NOTES + "\nA study.\n")
