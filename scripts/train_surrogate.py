@@ -55,6 +55,8 @@ class Args:
     horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
     warmup_epochs: int = opt(15, "epochs over which the rollout horizon grows linearly up to --horizon")
     epochs: int = opt(60, "maximum number of epochs")
+    max_time: float = opt(0.0, "wall-time budget of the training in minutes (0: none); the run stops at the first "
+                               "batch past it, keeps the selected epoch and evaluates as usual")
     batch_size: int = opt(64, "windows per optimiser step")
     train_batches: int = opt(0, "batches per epoch (0: all windows)")
     lr: float = opt(3e-3, "AdamW learning rate, cosine-annealed to 5 %% of it over --epochs")
@@ -97,6 +99,8 @@ def parse(argv=None) -> Args:
         get_task(a.task).reflections(a.mirror)
     except ValueError as e:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
+    if a.max_time < 0:
+        ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
     if a.init_from and a.resume:
@@ -220,7 +224,8 @@ def main(argv=None):
     ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor=monitor, save_last=True,
                               save_top_k=a.keep_top_k, filename="{epoch}-{val_loss:.1f}-{val_rollout_mm:.1f}")
     trainer = L.Trainer(
-        max_epochs=a.epochs, logger=loggers, enable_progress_bar=True,
+        max_epochs=a.epochs, max_time={"seconds": a.max_time * 60} if a.max_time else None, logger=loggers,
+        enable_progress_bar=True,
         deterministic=True if a.accelerator == "cpu" else "warn",
         callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb],
         gradient_clip_val=1.0, limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator,

@@ -78,9 +78,11 @@ def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):
 
 def test_train_surrogate_quick_closed_loop(tmp_path):
     res = run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "magnetic_rod", "--closed-loop",
-                      "--threads", "1", "--out", "ck.pt"], tmp_path)
+                      "--threads", "1", "--out", "ck.pt", "--max-time", "1e-6"], tmp_path)
     meta = json.loads((tmp_path / "ck.json").read_text())
     assert res["checkpoint"].endswith("ck.pt") and meta["args"]["closed_loop"] and "--closed-loop" in meta["command"]
+    # the time budget ends the run after its first epoch of the two --quick allows, then it evaluates as usual
+    assert meta["epochs_run"] == 1 and "orientation_deg" in meta["metrics"]["seen_last40"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle",
                           "--closed-loop"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
@@ -125,7 +127,8 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                               *extra], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
     for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
-                       (["--task", "rod"], "argument --task: invalid choice: 'rod'")):
+                       (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
+                       (["--max-time", "-1"], "--max-time must be >= 0 minutes")):
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
@@ -226,3 +229,4 @@ def test_one_step_bias_report_quick(tmp_path):
     # and negative while the pulse is on, zero out of the plane
     assert rows[0]["y"]["d2_mean_mm"] < -0.01 and abs(rows[0]["z"]["d2_mean_abs_mm"]) < 1e-9
     assert all(abs(r[ax]["bias_mm"]) <= r[ax]["mean_abs_err_mm"] + 1e-12 for r in rows for ax in "xyz")
+
