@@ -230,3 +230,36 @@ def test_one_step_bias_report_quick(tmp_path):
     assert rows[0]["y"]["d2_mean_mm"] < -0.01 and abs(rows[0]["z"]["d2_mean_abs_mm"]) < 1e-9
     assert all(abs(r[ax]["bias_mm"]) <= r[ax]["mean_abs_err_mm"] + 1e-12 for r in rows for ax in "xyz")
 
+
+def test_rank_checkpoints_on_fresh_variants(tmp_path):
+    """Checkpoints ranked on new variants of their scene; each error is the per-variant rollout's."""
+    from cmlearn.data import get_task, load_dataset
+    from cmlearn.data.windows import node_wrench
+    from cmlearn.eval.metrics import axis_errors
+    from cmlearn.surrogate import load_checkpoint
+    from cmlearn.surrogate.evaluate import free_running, from_rest, interest_slots
+    cks = [str(ROOT / "checkpoints" / f) for f in ("semicircle.pt", "semicircle_fast.pt")]
+    res = run_script([str(ROOT / "scripts/rank_checkpoints.py"), *cks, "--duration", "0.3", "--variants", "2",
+                      "--threads", "1", "--out", "rank.md"], tmp_path)
+    rows = res["ranking"]
+    assert sorted(r["checkpoint"] for r in rows) == sorted(cks) and len(res["variant_info"]) == 2
+    assert [r["score_mm"] for r in rows] == sorted(r["score_mm"] for r in rows)
+    for r in rows:
+        assert r["score_mm"] == pytest.approx(sum(map(max, r["max_mm"])) / 2) and r["score_mm"] > 0.01
+    task = get_task("semicircle")
+    data = load_dataset(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", task="semicircle")
+    model, _ = load_checkpoint(cks[1])
+    wr = node_wrench(data["wrench"][2], task.wrench_nodes, task.modeled)
+    pos, wk = from_rest(data["positions"][2], wr, model.config.eta)
+    slot = interest_slots(task, task.base_scene())[0]
+    pred = free_running(model, pos, wk, model.config.eta)[:, slot].double()
+    want = axis_errors(pred, pos[model.config.eta + 1:, slot].double(), data["meta"]["rod_length"])
+    got = next(r for r in rows if r["checkpoint"] == cks[1])["max_mm"][1]
+    assert got == pytest.approx([want[ax]["max_mm"] for ax in "xyz"], rel=1e-4, abs=1e-6)
+    assert "| 1 | " in (tmp_path / "rank.md").read_text()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for extra, msg in ((["--seed", "0"], "--seed 0 is the data seed of"),
+                       ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task")):
+        bad = subprocess.run([sys.executable, str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], cwd=tmp_path,
+                             env=env, capture_output=True, text=True, timeout=600)
+        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]

@@ -1,0 +1,115 @@
+"""Rank surrogate checkpoints of one task on fresh variants of its scene: a validation set of its own.
+
+    python scripts/rank_checkpoints.py checkpoints/ellipse.pt runs/ell_h512.pt [--seed 1] [--variants 4]
+        [--out FILE.md]
+
+A run's own validation (``val_loss``, ``val_rollout_mm``) scores one trajectory of its data; the
+held-out scenes are the test and must not pick a model. This draws ``--variants`` new trajectories
+from the task's own variant generator with another seed than any checkpoint's data (the same
+distribution, none of them trained on), simulates them with the LGVI (cached in ``--data-dir`` like
+a training dataset), rolls every checkpoint out free-running on each from its first frames (as the
+held-out scenes are: from rest, or from the start of their load), and ranks the checkpoints by the
+mean over the variants of the node of interest's largest error on any axis. Prints a markdown table
+and ends with one JSON line. Tasks with their own evaluation (the magnetic rod) are not supported.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from cmlearn.data import dataset_path, generate_dataset, get_task, load_dataset
+from cmlearn.data.windows import node_wrench
+from cmlearn.eval.metrics import axis_errors
+from cmlearn.io import write_text_atomic
+from cmlearn.surrogate import load_checkpoint
+from cmlearn.surrogate.evaluate import from_rest, interest_slots
+
+
+def fresh_variants(task, n: int, seed: int, data_dir: Path, duration: float | None = None) -> dict:
+    """``n`` new variants (the generator's variant 0, the printed scene, left out) of ``task``, cached."""
+    path = dataset_path(data_dir, task.name, n + 1, seed, duration)
+    if not path.exists():
+        generate_dataset(task, n + 1, seed, path, duration)
+    return load_dataset(path, task=task.name)
+
+
+def variant_info(info) -> object:
+    """The generator's description of the fresh variants (variant 0's left out)."""
+    return {k: v[1:] for k, v in info.items()} if isinstance(info, dict) else info[1:]
+
+
+@torch.no_grad()
+def variant_errors(model, task, data: dict) -> list[dict]:
+    """Free-running errors of the node of interest on each variant but the first, from rest."""
+    meta, eta = data["meta"], model.config.eta
+    slot = interest_slots(task, task.base_scene())[0]
+    wrench = node_wrench(data["wrench"], meta["wrench_nodes"], meta["modeled"]).float()
+    starts = [from_rest(p, w, eta) for p, w in zip(data["positions"][1:].float(), wrench[1:])]
+    pos, wr = torch.stack([p for p, _ in starts]), torch.stack([w for _, w in starts])
+    pred = model.rollout(pos[:, :eta + 1], wr[:, eta:], pos[:, 0], anchors=pos[:, eta + 1:])
+    ref = pos[:, eta + 1:]
+    return [axis_errors(pred[v, :, slot].double(), ref[v, :, slot].double(), meta["rod_length"])
+            for v in range(pred.shape[0])]
+
+
+def score(errors: list[dict]) -> float:
+    """Mean over the variants of the largest axis's max error (mm)."""
+    return sum(max(e[ax]["max_mm"] for ax in "xyz") for e in errors) / len(errors)
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt) of one task")
+    ap.add_argument("--seed", type=int, default=1, help="the fresh variants' seed (not any checkpoint's data seed)")
+    ap.add_argument("--variants", type=int, default=4, help="fresh trajectories to rank on")
+    ap.add_argument("--data-dir", default="data", help="where the fresh variants' LGVI runs are cached")
+    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's own)")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--out", default="", help="also write the table to this markdown file")
+    a = ap.parse_args(argv)
+    if a.variants < 1:
+        ap.error(f"--variants must be >= 1, got {a.variants}")
+    torch.set_num_threads(a.threads)
+    loaded = [(path, *load_checkpoint(path)) for path in a.checkpoints]
+    tasks = {meta["task"] for _, _, meta in loaded}
+    if len(tasks) != 1:
+        ap.error(f"checkpoints: all must be of one task, got {sorted(tasks)}")
+    task = get_task(tasks.pop())
+    if task.custom:
+        ap.error(f"checkpoints: task {task.name!r} has its own evaluation, not supported here")
+    for path, _, meta in loaded:
+        if meta.get("data_seed") == a.seed:
+            ap.error(f"--seed {a.seed} is the data seed of {path}: its variants were trained on")
+    data = fresh_variants(task, a.variants, a.seed, Path(a.data_dir), a.duration or None)
+    rows = []
+    for path, model, meta in loaded:
+        errs = variant_errors(model.eval(), task, data)
+        rows.append({"checkpoint": str(path), "score_mm": score(errs),
+                     "max_mm": [[e[ax]["max_mm"] for ax in "xyz"] for e in errs],
+                     "mean_mm": [[e[ax]["mean_mm"] for ax in "xyz"] for e in errs]})
+    rows.sort(key=lambda r: r["score_mm"])
+    info = variant_info(data["meta"]["variants"])
+    head = " | ".join(f"variant {v + 1}" for v in range(a.variants))
+    lines = [f"Task {task.name}: {a.variants} fresh variants (seed {a.seed}) {json.dumps(info)}, free-running "
+             "from their first frames; max, mean absolute error (mm) x / y / z of the node of interest.", "",
+             f"| rank | checkpoint | score (mean of max, mm) | {head} |",
+             "|---|---|---|" + "---|" * a.variants]
+    for i, r in enumerate(rows, 1):
+        cells = " | ".join(" / ".join(f"{m:.2f}, {n:.2f}" for m, n in zip(mx, mn))
+                           for mx, mn in zip(r["max_mm"], r["mean_mm"]))
+        lines.append(f"| {i} | {r['checkpoint']} | {r['score_mm']:.2f} | {cells} |")
+    table = "\n".join(lines) + "\n"
+    print(table)
+    if a.out:
+        write_text_atomic(a.out, table)
+    res = {"task": task.name, "seed": a.seed, "variants": a.variants, "variant_info": info, "ranking": rows}
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()
