@@ -5,8 +5,9 @@
 
 A run's own validation (``val_loss``, ``val_rollout_mm``) scores one trajectory of its data; the
 held-out scenes are the test and must not pick a model. This draws ``--variants`` new trajectories
-from the task's own variant generator with another seed than any checkpoint's data (the same
-distribution, none of them trained on), simulates them with the LGVI (cached in ``--data-dir`` like
+from the task's own variant generator with another seed than any checkpoint's data or fresh
+validation variants (``train_surrogate.py --val-fresh``; the same distribution, none of them trained
+on or selected by), simulates them with the LGVI (cached in ``--data-dir`` like
 a training dataset), rolls every checkpoint out free-running on each from its first frames (as the
 held-out scenes are: from rest, or from the start of their load), and ranks the checkpoints by the
 mean over the variants of the node of interest's largest error on any axis. Prints a markdown table
@@ -84,6 +85,9 @@ def main(argv=None) -> dict:
     for path, _, meta in loaded:
         if meta.get("data_seed") == a.seed:
             ap.error(f"--seed {a.seed} is the data seed of {path}: its variants were trained on")
+        args = meta.get("args", {})
+        if args.get("val_fresh") and args.get("val_seed") == a.seed:
+            ap.error(f"--seed {a.seed} drew the validation variants of {path}: they selected it")
     data = fresh_variants(task, a.variants, a.seed, Path(a.data_dir), a.duration or None)
     rows = []
     for path, model, meta in loaded:

@@ -55,8 +55,8 @@ class Args:
     horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
     warmup_epochs: int = opt(15, "epochs over which the rollout horizon grows linearly up to --horizon")
     epochs: int = opt(60, "maximum number of epochs")
-    max_time: float = opt(0.0, "wall-time budget of the training in minutes (0: none); the run stops at the first "
-                               "batch past it, keeps the selected epoch and evaluates as usual")
+    max_time: float = opt(0.0, "wall-time budget of the training in minutes (0: none); Lightning checks it after "
+                               "each batch and validation, then the run keeps its selected epoch and evaluates")
     batch_size: int = opt(64, "windows per optimiser step")
     train_batches: int = opt(0, "batches per epoch (0: all windows)")
     lr: float = opt(3e-3, "AdamW learning rate, cosine-annealed to 5 %% of it over --epochs")
@@ -69,6 +69,10 @@ class Args:
     patience: int = opt(15, "early stopping: epochs without improvement of the selection metric")
     select_by: str = opt("val_loss", "checkpoint selection and early stopping (rollout: val_rollout_mm)",
                          sorted(SELECT_METRICS))
+    val_fresh: int = opt(0, "validate on this many fresh variants of the scene (--val-seed, LGVI runs cached) "
+                            "instead of the dataset's last variant, which then trains (0: off)")
+    val_seed: int = opt(-1, "the fresh validation variants' seed (-1: --seed + 1)")
+    val_stride: int = opt(1, "validation windows start every this many frames")
     select_steps: int = opt(0, "steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)")
     keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)")
     threads: int = opt(2, "torch CPU threads")
@@ -99,6 +103,14 @@ def parse(argv=None) -> Args:
         get_task(a.task).reflections(a.mirror)
     except ValueError as e:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
+    if a.val_fresh < 0 or a.val_stride < 1:
+        ap.error(f"--val-fresh must be >= 0 and --val-stride >= 1, got {a.val_fresh} and {a.val_stride}")
+    if a.val_seed < 0:
+        a.val_seed = a.seed + 1
+    if a.val_fresh and a.val_seed == a.seed:
+        ap.error(f"--val-seed must differ from --seed {a.seed}: the fresh variants would be the training ones")
+    if a.val_fresh and a.closed_loop:
+        ap.error("--val-fresh: closed-loop inputs are computed for the training dataset only")
     if a.max_time < 0:
         ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.train_seed < -1:
@@ -153,11 +165,13 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
             "data_hash": meta.get("data_hash")}
 
 
-def dataset_for(task, a: Args) -> dict:
-    path = dataset_path(a.data_dir, task.name, a.variants, a.seed, a.duration)
+def dataset_for(task, a: Args, variants: int | None = None, seed: int | None = None) -> dict:
+    """The run's dataset (or, given ``variants`` and ``seed``, another of the same scene), generated once."""
+    variants, seed = variants or a.variants, a.seed if seed is None else seed
+    path = dataset_path(a.data_dir, task.name, variants, seed, a.duration)
     if not path.exists():
-        print(f"generating {path} with the LGVI ({a.variants} variants) ...", flush=True)
-        generate_dataset(task, a.variants, a.seed, path, duration=a.duration or None)
+        print(f"generating {path} with the LGVI ({variants} variants) ...", flush=True)
+        generate_dataset(task, variants, seed, path, duration=a.duration or None)
     return load_dataset(path, task=task.name)
 
 
@@ -198,12 +212,14 @@ def main(argv=None):
     init = load_init(task, a) if a.init_from else None
     t0 = time.perf_counter()
     data = dataset_for(task, a)
+    # fresh validation variants: the generator's first variant is the printed scene, left out of validation
+    val_data = dataset_for(task, a, a.val_fresh + 1, a.val_seed) if a.val_fresh else None
     t_data = time.perf_counter() - t0
     inputs = wrench_fn = None
     if a.closed_loop:
         inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
-                             inputs=inputs)
+                             inputs=inputs, val_dataset=val_data, val_stride=a.val_stride)
     model = build_model(task, a)
     init_from = None
     if init is None:
@@ -241,7 +257,8 @@ def main(argv=None):
     meta = {"task": task.name, "scene": task.scene, "heldout": list(task.heldout), "delta": task.delta,
             "tracked": list(task.tracked), "modeled": list(task.modeled), "wrench_nodes": list(task.wrench_nodes),
             "architecture": model.config.to_dict(), "n_parameters": sum(p.numel() for p in model.parameters()),
-            "data_hash": data["meta"]["data_hash"], "data_seed": a.seed, "n_variants": a.variants,
+            "data_hash": data["meta"]["data_hash"], "data_seed": a.seed,
+            "val_data_hash": val_data["meta"]["data_hash"] if val_data else None, "n_variants": a.variants,
             "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
             "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
             "data_wall_s": t_data, "init_from": init_from}

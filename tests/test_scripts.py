@@ -110,7 +110,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     # --init-from starts from those weights, scales included: at lr 0 the run leaves them as they are
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
                 "--rest-anchor", "--mirror", "zx", "--init-from", "ck.pt", "--lr", "0", "--epochs", "1",
-                "--out", "ft.pt", "--log-dir", "logs_ft"], tmp_path)
+                "--val-fresh", "2", "--val-stride", "2", "--out", "ft.pt", "--log-dir", "logs_ft"], tmp_path)
     src, ft = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("ck.pt", "ft.pt"))
     assert src.keys() == ft.keys() and all(torch.equal(src[k], ft[k]) for k in src)
     ft_meta = json.loads((tmp_path / "ft.json").read_text())
@@ -118,6 +118,8 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         assert {m: ft_meta["metrics"][case][m] for m in ("one_step", "free_running")} == \
             {m: meta["metrics"][case][m] for m in ("one_step", "free_running")}
     assert "--init-from ck.pt" in ft_meta["command"] and ft_meta["init_from"]["command"] == meta["command"]
+    fresh = torch.load(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", weights_only=False)  # validated on
+    assert ft_meta["val_data_hash"] == fresh["meta"]["data_hash"] and ft_meta["args"]["val_seed"] == 1
     assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
@@ -128,7 +130,8 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
     for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
-                       (["--max-time", "-1"], "--max-time must be >= 0 minutes")):
+                       (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
+                       (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0")):
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
@@ -257,9 +260,13 @@ def test_rank_checkpoints_on_fresh_variants(tmp_path):
     got = next(r for r in rows if r["checkpoint"] == cks[1])["max_mm"][1]
     assert got == pytest.approx([want[ax]["max_mm"] for ax in "xyz"], rel=1e-4, abs=1e-6)
     assert "| 1 | " in (tmp_path / "rank.md").read_text()
+    from cmlearn.surrogate import save_checkpoint
+    _, meta = load_checkpoint(cks[1])  # semicircle_fast.pt, as if selected on seed-1 fresh variants
+    save_checkpoint(tmp_path / "val1.pt", model, {**meta, "args": {**meta["args"], "val_fresh": 2, "val_seed": 1}})
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for extra, msg in ((["--seed", "0"], "--seed 0 is the data seed of"),
-                       ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task")):
+                       ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task"),
+                       (["val1.pt"], "--seed 1 drew the validation variants of val1.pt")):
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], cwd=tmp_path,
                              env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]

@@ -348,6 +348,31 @@ def test_rollout_selection_scores_the_free_running_validation_trajectory(tiny):
     assert RolloutSelection(dm, cap_mm=123.0).score(module) == 123.0
 
 
+def test_fresh_validation_variants_validate_and_the_whole_dataset_trains(tiny):
+    """With a validation dataset (fresh variants of the scene), its variants but the printed first one
+    give the validation windows (every val_stride-th) and the long rollout; the dataset's last
+    variant, which validates otherwise, trains."""
+    from cmlearn.surrogate.training import SurrogateDataModule
+    fresh = {"positions": tiny["positions"] + 0.01, "wrench": tiny["wrench"] * 2, "meta": tiny["meta"]}
+    dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=8, val_dataset=fresh, val_stride=3)
+    T = tiny["positions"].shape[1]
+    assert dm.ranges["train"] == split_ranges(3, T, val_variants=0)["train"] and dm.ranges["train"][-1][0] == 2
+    assert dm.ranges["val"] == [(1, 0, T - 1), (2, 0, T - 1)]
+    starts = list(range(2, T - 4, 3))
+    hist, fut, wk, ref = (torch.cat(x) for x in zip(*dm.val_dataloader()))
+    assert hist.shape[0] == 2 * len(starts)
+    fresh_wrench = node_wrench(fresh["wrench"], tiny["meta"]["wrench_nodes"], tiny["meta"]["modeled"])
+    for i, (v, t) in enumerate((v, t) for v in (1, 2) for t in starts):
+        assert torch.equal(hist[i], fresh["positions"][v, t - 2:t + 1]) and torch.equal(ref[i], fresh["positions"][v, 0])
+        assert torch.equal(wk[i], fresh_wrench[v, t:t + 4])
+    lh, lf = dm.long_rollout_batch()[:2]
+    assert torch.equal(lh, fresh["positions"][1:, :3]) and torch.equal(lf, fresh["positions"][1:, 3:])
+    with pytest.raises(ValueError, match="val_stride must be >= 1"):
+        SurrogateDataModule(tiny, eta=2, horizon=4, val_stride=0)
+    with pytest.raises(ValueError, match="val_dataset: closed-loop inputs"):
+        SurrogateDataModule(tiny, eta=2, horizon=4, val_dataset=fresh, inputs=torch.zeros(3, T - 1, 1))
+
+
 def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
     skipped and counted, every weight stays finite and equal to before."""

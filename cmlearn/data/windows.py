@@ -32,19 +32,19 @@ def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, va
 
 
 class RolloutWindows(Dataset):
-    """Every window start inside the given ``ranges`` [(variant, first_frame, last_frame)]. ``inputs``
+    """Every ``stride``-th window start inside the given ``ranges`` [(variant, first_frame, last_frame)]. ``inputs``
     (V, T-1, ...), optional: what a closed-loop training rollout computes each step's wrench from (e.g.
     :func:`cmlearn.surrogate.magnetic.closed_loop_inputs`), windowed like ``wrench``."""
 
     def __init__(self, positions: Tensor, wrench: Tensor, ranges, eta: int, horizon: int,
-                 inputs: Tensor | None = None):
+                 inputs: Tensor | None = None, stride: int = 1):
         if inputs is not None and inputs.shape[:2] != wrench.shape[:2]:
             raise ValueError(f"inputs {tuple(inputs.shape)} must match wrench {tuple(wrench.shape)} in (V, T-1)")
         self.positions, self.wrench, self.inputs = positions, wrench, inputs
         self.W, self.H = eta + 1, horizon
         self.index = []
         for v, a, b in ranges:
-            for t in range(a + self.W - 1, b - horizon + 1):  # t = last history frame
+            for t in range(a + self.W - 1, b - horizon + 1, stride):  # t = last history frame
                 self.index.append((v, t))
         if not self.index:
             raise ValueError(f"no window of {self.W} + {horizon} frames fits the ranges {ranges}")

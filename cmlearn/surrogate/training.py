@@ -21,23 +21,46 @@ __all__ = ["SurrogateDataModule", "SurrogateModule", "RolloutSelection"]
 
 
 class SurrogateDataModule(L.LightningDataModule):
+    """Training windows from ``dataset`` (see :func:`split_ranges`). Validation: the dataset's last
+    ``val_variants`` variants, or, where ``val_dataset`` is given (fresh variants of the same scene from
+    another seed), its variants but the first (the printed scene, trained on), while all of ``dataset``
+    trains; validation windows start every ``val_stride`` frames."""
+
     def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
-                 num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None):
+                 num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None,
+                 val_dataset: dict | None = None, val_stride: int = 1):
         super().__init__()
+        if val_dataset is not None and inputs is not None:
+            raise ValueError("val_dataset: closed-loop inputs are computed for the training dataset only")
+        if val_stride < 1:
+            raise ValueError(f"val_stride must be >= 1, got {val_stride}")
         self.inputs = inputs  # (V, T-1, ...) per-step inputs of a closed-loop wrench_fn
         meta = dataset["meta"]
         self.positions = dataset["positions"]
         self.wrench = node_wrench(dataset["wrench"], meta["wrench_nodes"], meta["modeled"])
-        self.ranges = split_ranges(meta["n_variants"], self.positions.shape[1], val_variants=val_variants)
+        self.ranges = split_ranges(meta["n_variants"], self.positions.shape[1],
+                                   val_variants=val_variants if val_dataset is None else 0)
+        self.val_positions, self.val_wrench = self.positions, self.wrench
+        if val_dataset is not None:
+            vm = val_dataset["meta"]
+            if vm["n_variants"] < 2:
+                raise ValueError("val_dataset must hold variants besides its first (the printed scene)")
+            self.val_positions = val_dataset["positions"]
+            self.val_wrench = node_wrench(val_dataset["wrench"], vm["wrench_nodes"], vm["modeled"])
+            self.ranges["val"] = [(v, 0, self.val_positions.shape[1] - 1) for v in range(1, vm["n_variants"])]
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
-        self.num_workers, self.seed = num_workers, seed
+        self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
 
     def train_positions(self):
         """Trajectories the scales may be computed from (training ranges only)."""
         return [self.positions[v, a:b + 1] for v, a, b in self.ranges["train"]]
 
     def _loader(self, split: str, shuffle: bool):
-        ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs)
+        if split == "val":
+            ds = RolloutWindows(self.val_positions, self.val_wrench, self.ranges["val"], self.eta, self.horizon,
+                                self.inputs, stride=self.val_stride)
+        else:
+            ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs)
         g = torch.Generator().manual_seed(self.seed)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
                           num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
@@ -54,7 +77,8 @@ class SurrogateDataModule(L.LightningDataModule):
         W = self.eta + 1
         n = min(b - a - W + 1 for _, a, b in self.ranges["val"])
         n = min(n, steps) if steps > 0 else n
-        windows = [RolloutWindows(self.positions, self.wrench, [(v, a, a + W - 1 + n)], self.eta, n, self.inputs)[0]
+        windows = [RolloutWindows(self.val_positions, self.val_wrench, [(v, a, a + W - 1 + n)], self.eta, n,
+                                  self.inputs)[0]
                    for v, a, _ in self.ranges["val"]]
         return tuple(torch.stack(parts) for parts in zip(*windows))
 
