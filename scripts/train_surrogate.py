@@ -152,10 +152,12 @@ SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_sc
 def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str) -> dict:
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
     schedule. The scales must fit this run's data: the same data hash, or (regenerated data can differ in
-    its last bits, for example on another machine) the scales this data gives within 1e-5. Returns the provenance
-    the new checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
+    its last bits, for example on another machine) the scales this data gives within 1e-5, over the variants
+    the checkpoint's own run trained on (with or without --val-fresh). Returns the provenance the new
+    checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
     if meta.get("data_hash") != data["meta"]["data_hash"]:
-        model.set_scales(dm.train_positions(), dm.wrench, float(init.length_scale))
+        fresh = bool(meta.get("args", {}).get("val_fresh"))
+        model.set_scales(dm.train_positions(fresh_validation=fresh), dm.wrench, float(init.length_scale))
         off = max(float(((getattr(model, k) - getattr(init, k)).abs() / getattr(init, k).abs()).max()) for k in SCALES)
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "

@@ -169,7 +169,7 @@ def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
     (tmp_path / "ck.pt").write_bytes(b"weights")
     meta, data = {"data_hash": "a" * 16, "command": "train"}, {"meta": {"data_hash": "b" * 16}}
     for factor, fits in ((1 + 1e-12, True), (1.001, False)):
-        dm = SimpleNamespace(train_positions=lambda: [p * factor for p in trajs], wrench=wrench)
+        dm = SimpleNamespace(train_positions=lambda fresh_validation: [p * factor for p in trajs], wrench=wrench)
         model = ts.build_model(task, a)
         if fits:
             prov = ts.start_from(model, init, meta, data, dm, str(tmp_path / "ck.pt"))
@@ -178,6 +178,21 @@ def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
         else:
             with pytest.raises(SystemExit, match="its scales differ by up to 1.0e-03"):
                 ts.start_from(model, init, meta, data, dm, str(tmp_path / "ck.pt"))
+    # a run with fresh validation variants (its dataset's last variant trains) fine-tunes a checkpoint whose
+    # run validated on that variant: the scales are compared over the variants that run trained on
+    from cmlearn.surrogate.training import SurrogateDataModule
+    pos = torch.stack([t[:40] for t in trajs]).float()
+    pos[2] *= 3  # the last variant moves more: the scales with it differ
+    dset = {"positions": pos, "wrench": wrench[:, :39].float(),
+            "meta": {"n_variants": 3, "wrench_nodes": list(task.wrench_nodes), "modeled": list(task.modeled),
+                     "data_hash": "b" * 16}}
+    dm_fresh = SurrogateDataModule(dset, eta=2, horizon=4, val_dataset=dset)
+    init.set_scales(SurrogateDataModule(dset, eta=2, horizon=4).train_positions(), dm_fresh.wrench, 0.6)
+    prov = ts.start_from(ts.build_model(task, a), init, meta, data, dm_fresh, str(tmp_path / "ck.pt"))
+    assert prov["data_hash"] == "a" * 16
+    with pytest.raises(SystemExit, match="its scales differ"):  # as if that run had trained on every variant
+        ts.start_from(ts.build_model(task, a), init, {**meta, "args": {"val_fresh": 4}}, data, dm_fresh,
+                      str(tmp_path / "ck.pt"))
 
 
 def test_surrogate_report(tmp_path):

@@ -51,9 +51,14 @@ class SurrogateDataModule(L.LightningDataModule):
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
         self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
 
-    def train_positions(self):
-        """Trajectories the scales may be computed from (training ranges only)."""
-        return [self.positions[v, a:b + 1] for v, a, b in self.ranges["train"]]
+    def train_positions(self, fresh_validation: bool | None = None):
+        """Trajectories the scales may be computed from (training ranges only): this module's, or those of
+        a run with (``fresh_validation=True``: every variant trains) or without fresh validation variants."""
+        ranges = self.ranges["train"]
+        if fresh_validation is not None:
+            ranges = split_ranges(len(self.positions), self.positions.shape[1],
+                                  val_variants=0 if fresh_validation else 1)["train"]
+        return [self.positions[v, a:b + 1] for v, a, b in ranges]
 
     def _loader(self, split: str, shuffle: bool):
         if split == "val":
