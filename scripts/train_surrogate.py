@@ -248,7 +248,19 @@ def main(argv=None):
         callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb],
         gradient_clip_val=1.0, limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator,
         devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10, num_sanity_val_steps=0)
+    if init_from is not None:  # the starting weights' validation metrics (not logged): did fine-tuning beat them?
+        start = L.Trainer(accelerator=a.accelerator, devices=1, logger=False, enable_checkpointing=False,
+                          enable_progress_bar=False, callbacks=[RolloutSelection(dm, a.select_steps)]
+                          ).validate(module, datamodule=dm, verbose=False)[0]
+        init_from["val"] = {k: float(start[k]) for k in SELECT_METRICS.values() if k in start}
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)
+    if init_from is not None and ckpt_cb.best_model_score is not None:
+        best = float(ckpt_cb.best_model_score)
+        init_from["selected_beats_start"] = bool(best < init_from["val"][monitor])
+        if not init_from["selected_beats_start"]:
+            print(f"warning: no epoch beat the starting weights on {monitor} ({best:.4g} against "
+                  f"{init_from['val'][monitor]:.4g}): the fine-tuned model is the selected epoch all the same",
+                  file=sys.stderr)
     if ckpt_cb.best_model_path:
         state = torch.load(ckpt_cb.best_model_path, map_location="cpu", weights_only=False)["state_dict"]
         module.load_state_dict(state)

@@ -1,4 +1,5 @@
 """Smoke runs of the scripts with tiny budgets: they run and end with one JSON line."""
+import csv
 import hashlib
 import json
 import os
@@ -118,6 +119,11 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         assert {m: ft_meta["metrics"][case][m] for m in ("one_step", "free_running")} == \
             {m: meta["metrics"][case][m] for m in ("one_step", "free_running")}
     assert "--init-from ck.pt" in ft_meta["command"] and ft_meta["init_from"]["command"] == meta["command"]
+    # the starting weights were validated first: at lr 0 the one epoch scores exactly as they do
+    ep = [r for r in csv.DictReader(next((tmp_path / "logs_ft").rglob("metrics.csv")).open()) if r.get("val_loss")]
+    assert len(ep) == 1 and ft_meta["init_from"]["val"] == pytest.approx(
+        {k: float(ep[0][k]) for k in ("val_loss", "val_rollout_mm")}, rel=1e-5)
+    assert ft_meta["init_from"]["selected_beats_start"] is False
     fresh = torch.load(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", weights_only=False)  # validated on
     assert ft_meta["val_data_hash"] == fresh["meta"]["data_hash"] and ft_meta["args"]["val_seed"] == 1
     assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
