@@ -1,6 +1,6 @@
 """Rank surrogate checkpoints of one task on fresh variants of its scene: a validation set of its own.
 
-    python scripts/rank_checkpoints.py checkpoints/ellipse.pt runs/ell_h512.pt [--seed 1] [--variants 4]
+    python scripts/rank_checkpoints.py checkpoints/ellipse.pt runs/ell_h512.pt [--seed 2] [--variants 4]
         [--out FILE.md]
 
 A run's own validation (``val_loss``, ``val_rollout_mm``) scores one trajectory of its data; the
@@ -65,7 +65,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt) of one task")
-    ap.add_argument("--seed", type=int, default=1, help="the fresh variants' seed (not any checkpoint's data seed)")
+    ap.add_argument("--seed", type=int, default=2, help="the fresh variants' seed (not one a checkpoint was trained "
+                    "or selected on: train_surrogate's defaults are 0 and, with --val-fresh, 1)")
     ap.add_argument("--variants", type=int, default=4, help="fresh trajectories to rank on")
     ap.add_argument("--data-dir", default="data", help="where the fresh variants' LGVI runs are cached")
     ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's own)")

@@ -271,7 +271,7 @@ def test_rank_checkpoints_on_fresh_variants(tmp_path):
     for r in rows:
         assert r["score_mm"] == pytest.approx(sum(map(max, r["max_mm"])) / 2) and r["score_mm"] > 0.01
     task = get_task("semicircle")
-    data = load_dataset(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", task="semicircle")
+    data = load_dataset(tmp_path / "data" / "semicircle_v3_s2_d0.3.pt", task="semicircle")
     model, _ = load_checkpoint(cks[1])
     wr = node_wrench(data["wrench"][2], task.wrench_nodes, task.modeled)
     pos, wk = from_rest(data["positions"][2], wr, model.config.eta)
@@ -287,7 +287,7 @@ def test_rank_checkpoints_on_fresh_variants(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for extra, msg in ((["--seed", "0"], "--seed 0 is the data seed of"),
                        ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task"),
-                       (["val1.pt"], "--seed 1 drew the validation variants of val1.pt")):
+                       (["val1.pt", "--seed", "1"], "--seed 1 drew the validation variants of val1.pt")):
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], cwd=tmp_path,
                              env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
