@@ -17,24 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import torch
 
-from cmlearn.data import dataset_path, generate_dataset, get_task, load_dataset
+from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import node_wrench
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
 from cmlearn.surrogate.evaluate import from_rest, interest_slots
-
-
-def fresh_variants(task, n: int, seed: int, data_dir: Path, duration: float | None = None) -> dict:
-    """``n`` new variants (the generator's variant 0, the printed scene, left out) of ``task``, cached."""
-    path = dataset_path(data_dir, task.name, n + 1, seed, duration)
-    if not path.exists():
-        generate_dataset(task, n + 1, seed, path, duration)
-    return load_dataset(path, task=task.name)
 
 
 def variant_info(info) -> object:
@@ -89,7 +80,8 @@ def main(argv=None) -> dict:
         args = meta.get("args", {})
         if args.get("val_fresh") and args.get("val_seed") == a.seed:
             ap.error(f"--seed {a.seed} drew the validation variants of {path}: they selected it")
-    data = fresh_variants(task, a.variants, a.seed, Path(a.data_dir), a.duration or None)
+    # variant 0 of the generator is the printed scene (trained on): drawn, then left out of the ranking
+    data = cached_dataset(task, a.variants + 1, a.seed, a.data_dir, a.duration or None)
     rows = []
     for path, model, meta in loaded:
         errs = variant_errors(model.eval(), task, data)

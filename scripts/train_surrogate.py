@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 import cmlearn
-from cmlearn.data import TASKS, dataset_path, generate_dataset, get_task, load_dataset
+from cmlearn.data import TASKS, cached_dataset, get_task
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
@@ -167,16 +167,6 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
             "data_hash": meta.get("data_hash")}
 
 
-def dataset_for(task, a: Args, variants: int | None = None, seed: int | None = None) -> dict:
-    """The run's dataset (or, given ``variants`` and ``seed``, another of the same scene), generated once."""
-    variants, seed = variants or a.variants, a.seed if seed is None else seed
-    path = dataset_path(a.data_dir, task.name, variants, seed, a.duration)
-    if not path.exists():
-        print(f"generating {path} with the LGVI ({variants} variants) ...", flush=True)
-        generate_dataset(task, variants, seed, path, duration=a.duration or None)
-    return load_dataset(path, task=task.name)
-
-
 def evaluate_all(model, task, data: dict, a: Args) -> dict:
     """Seen scene (variant 0, last 40 %) and the held-out scenes from rest, both modes."""
     if task.custom:  # e.g. the magnetic rod: closed-loop rollout, orientation errors, the Cosserat baseline
@@ -213,9 +203,9 @@ def main(argv=None):
                          "given, not computed from the pose)")
     init = load_init(task, a) if a.init_from else None
     t0 = time.perf_counter()
-    data = dataset_for(task, a)
+    data = cached_dataset(task, a.variants, a.seed, a.data_dir, a.duration or None)
     # fresh validation variants: the generator's first variant is the printed scene, left out of validation
-    val_data = dataset_for(task, a, a.val_fresh + 1, a.val_seed) if a.val_fresh else None
+    val_data = cached_dataset(task, a.val_fresh + 1, a.val_seed, a.data_dir, a.duration or None) if a.val_fresh else None
     t_data = time.perf_counter() - t0
     inputs = wrench_fn = None
     if a.closed_loop:
