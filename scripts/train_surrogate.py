@@ -65,7 +65,8 @@ class Args:
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
     one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss")
-    closed_loop: bool = opt(False, "training rollouts compute their own wrench (tasks whose custom module can)")
+    closed_loop: bool = opt(False, "training rollouts compute their own wrench (tasks whose custom module can; "
+                                   "their validation rollout, val_rollout_mm, always does)")
     patience: int = opt(15, "early stopping: epochs without improvement of the selection metric")
     select_by: str = opt("val_loss", "checkpoint selection and early stopping (rollout: val_rollout_mm)",
                          sorted(SELECT_METRICS))
@@ -109,8 +110,6 @@ def parse(argv=None) -> Args:
         a.val_seed = a.seed + 1
     if a.val_fresh and a.val_seed == a.seed:
         ap.error(f"--val-seed must differ from --seed {a.seed}: the fresh variants would be the training ones")
-    if a.val_fresh and a.closed_loop:
-        ap.error("--val-fresh: closed-loop inputs are computed for the training dataset only")
     if a.max_time < 0:
         ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.train_seed < -1:
@@ -207,11 +206,14 @@ def main(argv=None):
     # fresh validation variants: the generator's first variant is the printed scene, left out of validation
     val_data = cached_dataset(task, a.val_fresh + 1, a.val_seed, a.data_dir, a.duration or None) if a.val_fresh else None
     t_data = time.perf_counter() - t0
-    inputs = wrench_fn = None
-    if a.closed_loop:
+    # a task with a wrench model of its own (the magnetic rod) is evaluated in closed loop, so its selection
+    # rollout (val_rollout_mm) runs in closed loop too, whether or not training does (--closed-loop)
+    inputs = val_inputs = wrench_fn = None
+    if task.custom:
         inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
+        val_inputs = task.hook("closed_loop_inputs")(task, val_data) if val_data else None
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
-                             inputs=inputs, val_dataset=val_data, val_stride=a.val_stride)
+                             inputs=inputs, val_dataset=val_data, val_stride=a.val_stride, val_inputs=val_inputs)
     model = build_model(task, a)
     init_from = None
     if init is None:
@@ -220,7 +222,8 @@ def main(argv=None):
         init_from = start_from(model, *init, data, dm, a.init_from)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
-                             step_weighting=a.step_weighting, one_step_weight=a.one_step_weight, wrench_fn=wrench_fn)
+                             step_weighting=a.step_weighting, one_step_weight=a.one_step_weight,
+                             wrench_fn=wrench_fn if a.closed_loop else None)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger
@@ -235,12 +238,12 @@ def main(argv=None):
         max_epochs=a.epochs, max_time={"seconds": a.max_time * 60} if a.max_time else None, logger=loggers,
         enable_progress_bar=True,
         deterministic=True if a.accelerator == "cpu" else "warn",
-        callbacks=[RolloutSelection(dm, a.select_steps), EarlyStopping(monitor, patience=a.patience), ckpt_cb],
+        callbacks=[RolloutSelection(dm, a.select_steps, wrench_fn=wrench_fn), EarlyStopping(monitor, patience=a.patience), ckpt_cb],
         gradient_clip_val=1.0, limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator,
         devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10, num_sanity_val_steps=0)
     if init_from is not None:  # the starting weights' validation metrics (not logged): did fine-tuning beat them?
         start = L.Trainer(accelerator=a.accelerator, devices=1, logger=False, enable_checkpointing=False,
-                          enable_progress_bar=False, callbacks=[RolloutSelection(dm, a.select_steps)]
+                          enable_progress_bar=False, callbacks=[RolloutSelection(dm, a.select_steps, wrench_fn=wrench_fn)]
                           ).validate(module, datamodule=dm, verbose=False)[0]
         init_from["val"] = {k: float(start[k]) for k in SELECT_METRICS.values() if k in start}
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)

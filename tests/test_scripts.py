@@ -79,9 +79,10 @@ def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):
 
 def test_train_surrogate_quick_closed_loop(tmp_path):
     res = run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "magnetic_rod", "--closed-loop",
-                      "--threads", "1", "--out", "ck.pt", "--max-time", "1e-6"], tmp_path)
+                      "--threads", "1", "--out", "ck.pt", "--max-time", "1e-6", "--val-fresh", "1"], tmp_path)
     meta = json.loads((tmp_path / "ck.json").read_text())
     assert res["checkpoint"].endswith("ck.pt") and meta["args"]["closed_loop"] and "--closed-loop" in meta["command"]
+    assert meta["val_data_hash"] and meta["val_data_hash"] != meta["data_hash"]  # closed-loop inputs of fresh variants
     # the time budget ends the run after its first epoch of the two --quick allows, then it evaluates as usual
     assert meta["epochs_run"] == 1 and "orientation_deg" in meta["metrics"]["seen_last40"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -222,6 +223,10 @@ def test_rollout_sensitivity_report_quick(tmp_path):
     x1, x10 = cases["nudge 1 um"]["x"]["max_mm"], cases["nudge 10 um"]["x"]["max_mm"]
     assert 0 < x1 and abs(x10 / x1 - 10) < 0.5
     assert cases["float32"]["x"]["max_mm"] < x1
+    # the LGVI's own step error converges at second order: |p(dt) - p(dt/4)| / |p(dt/2) - p(dt/4)| = (1 - 1/16) /
+    # (1/4 - 1/16) = 5 along the load (y)
+    step = res["semicircle"]["step_error"]["cases"]
+    assert step["dt"]["y"]["max_mm"] > 0 and 4.5 < step["dt"]["y"]["max_mm"] / step["dt/2"]["y"]["max_mm"] < 5.5
 
 
 def test_load_amplitude_report_quick(tmp_path):

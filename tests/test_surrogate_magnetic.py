@@ -179,6 +179,17 @@ def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tm
     gap_open = float((pred_open - ref).abs().max())
     assert gap_open > 2e-7  # the untrained model's own frames give another wrench than the data's (float32: 1e-8 m)
     assert float((pred - ref).abs().max()) < 0.05 * gap_open
+    # the selection rollout (val_rollout_mm) of a model trained open loop runs in closed loop when given the
+    # wrench model: it scores the open-loop module as the closed-loop one, on fresh variants with their own inputs
+    from cmlearn.surrogate.training import RolloutSelection, SurrogateDataModule
+    dm = SurrogateDataModule(d, eta=2, horizon=8, inputs=inputs, val_dataset=d, val_inputs=inputs)
+    closed = RolloutSelection(dm).score(module)
+    assert RolloutSelection(dm, wrench_fn=closed_loop_wrench(TASK)).score(open_loop) == pytest.approx(closed, rel=1e-6)
+    assert RolloutSelection(dm).score(open_loop) != closed
+    with pytest.raises(ValueError, match="val_inputs"):
+        SurrogateDataModule(d, eta=2, horizon=8, inputs=inputs, val_dataset=d)
+    with pytest.raises(ValueError, match="val_inputs"):
+        SurrogateDataModule(d, eta=2, horizon=8, val_inputs=inputs)
     with pytest.raises(ValueError, match="inputs"):
         RolloutWindows(d["positions"], wr, [(1, 0, 20)], eta=2, horizon=8, inputs=inputs[:, :5])
     with pytest.raises(ValueError, match="regenerated currents"):

@@ -24,14 +24,17 @@ class SurrogateDataModule(L.LightningDataModule):
     """Training windows from ``dataset`` (see :func:`split_ranges`). Validation: the dataset's last
     ``val_variants`` variants, or, where ``val_dataset`` is given (fresh variants of the same scene from
     another seed), its variants but the first (the printed scene, trained on), while all of ``dataset``
-    trains; validation windows start every ``val_stride`` frames."""
+    trains; validation windows start every ``val_stride`` frames. ``inputs`` (and ``val_inputs`` for a
+    ``val_dataset``): the per-step inputs of a closed-loop ``wrench_fn``, in every window."""
 
     def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
                  num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None,
-                 val_dataset: dict | None = None, val_stride: int = 1):
+                 val_dataset: dict | None = None, val_stride: int = 1, val_inputs: torch.Tensor | None = None):
         super().__init__()
-        if val_dataset is not None and inputs is not None:
-            raise ValueError("val_dataset: closed-loop inputs are computed for the training dataset only")
+        if val_dataset is not None and (inputs is None) != (val_inputs is None):
+            raise ValueError("inputs and val_inputs: closed-loop inputs must be given for both datasets or neither")
+        if val_dataset is None and val_inputs is not None:
+            raise ValueError("val_inputs belong to a val_dataset, and none is given")
         if val_stride < 1:
             raise ValueError(f"val_stride must be >= 1, got {val_stride}")
         self.inputs = inputs  # (V, T-1, ...) per-step inputs of a closed-loop wrench_fn
@@ -40,13 +43,14 @@ class SurrogateDataModule(L.LightningDataModule):
         self.wrench = node_wrench(dataset["wrench"], meta["wrench_nodes"], meta["modeled"])
         self.ranges = split_ranges(meta["n_variants"], self.positions.shape[1],
                                    val_variants=val_variants if val_dataset is None else 0)
-        self.val_positions, self.val_wrench = self.positions, self.wrench
+        self.val_positions, self.val_wrench, self.val_inputs = self.positions, self.wrench, inputs
         if val_dataset is not None:
             vm = val_dataset["meta"]
             if vm["n_variants"] < 2:
                 raise ValueError("val_dataset must hold variants besides its first (the printed scene)")
             self.val_positions = val_dataset["positions"]
             self.val_wrench = node_wrench(val_dataset["wrench"], vm["wrench_nodes"], vm["modeled"])
+            self.val_inputs = val_inputs
             self.ranges["val"] = [(v, 0, self.val_positions.shape[1] - 1) for v in range(1, vm["n_variants"])]
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
         self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
@@ -63,7 +67,7 @@ class SurrogateDataModule(L.LightningDataModule):
     def _loader(self, split: str, shuffle: bool):
         if split == "val":
             ds = RolloutWindows(self.val_positions, self.val_wrench, self.ranges["val"], self.eta, self.horizon,
-                                self.inputs, stride=self.val_stride)
+                                self.val_inputs, stride=self.val_stride)
         else:
             ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs)
         g = torch.Generator().manual_seed(self.seed)
@@ -83,7 +87,7 @@ class SurrogateDataModule(L.LightningDataModule):
         n = min(b - a - W + 1 for _, a, b in self.ranges["val"])
         n = min(n, steps) if steps > 0 else n
         windows = [RolloutWindows(self.val_positions, self.val_wrench, [(v, a, a + W - 1 + n)], self.eta, n,
-                                  self.inputs)[0]
+                                  self.val_inputs)[0]
                    for v, a, _ in self.ranges["val"]]
         return tuple(torch.stack(parts) for parts in zip(*windows))
 
@@ -108,19 +112,20 @@ class SurrogateModule(L.LightningModule):
         frac = min(1.0, (self.current_epoch + 1) / max(1, self.warmup_epochs))
         return max(1, int(round(frac * self.horizon)))
 
-    def rollout_loss(self, batch, horizon: int, weighting: str = "uniform"):
+    def rollout_loss(self, batch, horizon: int, weighting: str = "uniform", wrench_fn=None):
         """Mean squared rollout error over ``horizon`` steps. ``inverse_square`` divides the error at
         step h by h: a bias in the predicted second difference grows as h^2 along a rollout, so
         uniform weights let the last steps' drift dominate the loss and the fit of each single step
         (what the rollout is made of) hardly counts; divided by h, every step weighs about alike.
-        Closed loop (``wrench_fn`` and a batch with inputs): each step's wrench from the last frame."""
+        Closed loop (the module's ``wrench_fn``, or the ``wrench_fn`` given here, and a batch with inputs):
+        each step's wrench from the last frame."""
         hist, future, wrench, ref = batch[:4]
         m = self.model
         idx = m.idx_modeled
-        fn = None
-        if self.wrench_fn is not None and len(batch) > 4:
+        fn, wrench_fn = None, wrench_fn or self.wrench_fn
+        if wrench_fn is not None and len(batch) > 4:
             inputs = batch[4]
-            fn = lambda h, frame: self.wrench_fn(frame, inputs[:, h])  # noqa: E731
+            fn = lambda h, frame: wrench_fn(frame, inputs[:, h])  # noqa: E731
         pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon], wrench_fn=fn)
         err = self.scaled_error(pred[:, :, idx], future[:, :horizon, idx])
         if weighting == "inverse_square":
@@ -190,12 +195,13 @@ class SurrogateModule(L.LightningModule):
 class RolloutSelection(L.Callback):
     """Logs ``val_rollout_mm`` after every validation epoch: the mean absolute error (mm) of the modelled
     nodes over a free-running rollout of the validation trajectories from their first frame (``steps``
-    steps; 0: the whole trajectory), in closed loop where the module has a ``wrench_fn``. The short
+    steps; 0: the whole trajectory), in closed loop where the module has a ``wrench_fn`` or one is given
+    here (a model trained open loop but used in closed loop, selected as it is used). The short
     windows of ``val_loss`` do not rank models by how long their rollouts stay on the physics; monitor
     this instead to select and early-stop on it. A rollout that runs away scores ``cap_mm``."""
 
-    def __init__(self, datamodule: SurrogateDataModule, steps: int = 0, cap_mm: float = 1e5):
-        self.dm, self.steps, self.cap_mm = datamodule, steps, cap_mm
+    def __init__(self, datamodule: SurrogateDataModule, steps: int = 0, cap_mm: float = 1e5, wrench_fn=None):
+        self.dm, self.steps, self.cap_mm, self.wrench_fn = datamodule, steps, cap_mm, wrench_fn
         self._batch = None
 
     @torch.no_grad()
@@ -203,7 +209,7 @@ class RolloutSelection(L.Callback):
         if self._batch is None:
             self._batch = self.dm.long_rollout_batch(self.steps)
         batch = tuple(t.to(module.device, module.dtype if t.is_floating_point() else t.dtype) for t in self._batch)
-        _, pred = module.rollout_loss(batch, batch[1].shape[1])
+        _, pred = module.rollout_loss(batch, batch[1].shape[1], wrench_fn=self.wrench_fn)
         idx = module.model.idx_modeled
         err = (pred[:, :, idx] - batch[1][:, :, idx]).abs().mean() * 1e3
         return float(err) if torch.isfinite(err) and err < self.cap_mm else self.cap_mm
