@@ -227,6 +227,9 @@ def test_rollout_sensitivity_report_quick(tmp_path):
     # (1/4 - 1/16) = 5 along the load (y)
     step = res["semicircle"]["step_error"]["cases"]
     assert step["dt"]["y"]["max_mm"] > 0 and 4.5 < step["dt"]["y"]["max_mm"] / step["dt/2"]["y"]["max_mm"] < 5.5
+    # the motion above f Hz shrinks as f grows (the pushed node's y motion is slow: mostly below 2 Hz)
+    above = [res["semicircle"]["step_error"]["above_hz"][f]["y"]["mean_mm"] for f in ("1", "2", "5", "10")]
+    assert above == sorted(above, reverse=True) and above[-1] < 0.01 * above[0]
 
 
 def test_load_amplitude_report_quick(tmp_path):
