@@ -32,6 +32,7 @@ import torch
 from scipy.signal import butter, filtfilt
 
 from cmlearn.data import get_task
+from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate.evaluate import THESIS_ERRORS_MM as THESIS
 
@@ -82,9 +83,7 @@ def sensitivity(task_name: str, quick: bool) -> dict:
             out["second_difference_max_mm"]["d" if k == 1 else f"d/{k}"] = float(
                 (q[2:] - 2 * q[1:-1] + q[:-2]).abs().max()) * 1e3
     for b, name in enumerate(cases, start=1):  # batch row 0 is the exact run
-        d = (traj[b] - traj[0]).abs() * 1e3
-        out["cases"][name] = {ax: {"max_mm": float(d[:, i].max()), "mean_mm": float(d[:, i].mean())}
-                              for i, ax in enumerate("xyz")}
+        out["cases"][name] = axis_errors(traj[b], traj[0], scene.rod.length)
     return out
 
 
@@ -104,17 +103,16 @@ def step_error(task_name: str, quick: bool) -> dict:
         runs[k] = p[:, slot].double()
     cut = int(round(0.6 * (runs[1].shape[0] - 1)))
     out = {"dt": scene.dt, "wall_s": {f"dt/{k}": w for k, w in wall.items()}, "cases": {}, "above_hz": {}}
-    stats = lambda d: {ax: {"max_mm": float(d[:, i].max()), "mean_mm": float(d[:, i].mean())}  # noqa: E731
-                       for i, ax in enumerate("xyz")}
+    L = scene.rod.length
     for k in (1, 2):
-        out["cases"]["dt" if k == 1 else "dt/2"] = stats((runs[k] - runs[4])[cut:].abs() * 1e3)
+        out["cases"]["dt" if k == 1 else "dt/2"] = axis_errors(runs[k][cut:], runs[4][cut:], L)
     # the motion above f Hz (the run at the printed step less its zero-phase low-pass): what a model that
     # followed everything slower exactly, and nothing faster, would still miss
     for f in (1.0, 2.0, 5.0, 10.0):
         if f < 0.5 / task.delta:
             b, a = butter(4, f, fs=1.0 / task.delta)
             slow = torch.from_numpy(filtfilt(b, a, runs[1].numpy(), axis=0, padlen=min(27, runs[1].shape[0] - 1)).copy())
-            out["above_hz"][f"{f:g}"] = stats((runs[1] - slow)[cut:].abs() * 1e3)
+            out["above_hz"][f"{f:g}"] = axis_errors(runs[1][cut:], slow[cut:], L)
     return out
 
 

@@ -210,8 +210,8 @@ def main(argv=None):
     # rollout (val_rollout_mm) runs in closed loop too, whether or not training does (--closed-loop)
     inputs = val_inputs = wrench_fn = None
     if task.custom:
-        inputs, wrench_fn = task.hook("closed_loop_inputs")(task, data), task.hook("closed_loop_wrench")(task)
-        val_inputs = task.hook("closed_loop_inputs")(task, val_data) if val_data else None
+        inputs_of, wrench_fn = task.hook("closed_loop_inputs"), task.hook("closed_loop_wrench")(task)
+        inputs, val_inputs = inputs_of(task, data), inputs_of(task, val_data) if val_data else None
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
                              inputs=inputs, val_dataset=val_data, val_stride=a.val_stride, val_inputs=val_inputs)
     model = build_model(task, a)
