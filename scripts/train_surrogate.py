@@ -73,6 +73,8 @@ class Args:
     val_fresh: int = opt(0, "validate on this many fresh variants of the scene (--val-seed, LGVI runs cached) "
                             "instead of the dataset's last variant, which then trains (0: off)")
     val_seed: int = opt(-1, "the fresh validation variants' seed (-1: --seed + 1)")
+    val_tail: float = opt(0.0, "this fraction of the printed scene's trajectory, just before the 60 %% cut, "
+                               "validates instead of training (the thesis's protocol: --variants 1 --val-tail 0.15)")
     val_stride: int = opt(1, "validation windows start every this many frames")
     select_steps: int = opt(0, "steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)")
     keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)")
@@ -106,6 +108,11 @@ def parse(argv=None) -> Args:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
     if a.val_fresh < 0 or a.val_stride < 1:
         ap.error(f"--val-fresh must be >= 0 and --val-stride >= 1, got {a.val_fresh} and {a.val_stride}")
+    if not 0.0 <= a.val_tail < 0.6:
+        ap.error(f"--val-tail must lie in [0, 0.6) of the trajectory (the printed scene's cut), got {a.val_tail}")
+    if a.val_tail and a.val_fresh:
+        ap.error("--val-tail and --val-fresh exclude each other: validate on the printed scene's tail or on fresh "
+                 "variants")
     if a.val_seed < 0:
         a.val_seed = a.seed + 1
     if a.val_fresh and a.val_seed == a.seed:
@@ -155,8 +162,9 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
     the checkpoint's own run trained on (with or without --val-fresh). Returns the provenance the new
     checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
     if meta.get("data_hash") != data["meta"]["data_hash"]:
-        fresh = bool(meta.get("args", {}).get("val_fresh"))
-        model.set_scales(dm.train_positions(fresh_validation=fresh), dm.wrench, float(init.length_scale))
+        run = meta.get("args", {})
+        model.set_scales(dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0)),
+                         dm.wrench, float(init.length_scale))
         off = max(float(((getattr(model, k) - getattr(init, k)).abs() / getattr(init, k).abs()).max()) for k in SCALES)
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
@@ -213,7 +221,8 @@ def main(argv=None):
         inputs_of, wrench_fn = task.hook("closed_loop_inputs"), task.hook("closed_loop_wrench")(task)
         inputs, val_inputs = inputs_of(task, data), inputs_of(task, val_data) if val_data else None
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
-                             inputs=inputs, val_dataset=val_data, val_stride=a.val_stride, val_inputs=val_inputs)
+                             inputs=inputs, val_dataset=val_data, val_stride=a.val_stride, val_inputs=val_inputs,
+                             val_tail=a.val_tail)
     model = build_model(task, a)
     init_from = None
     if init is None:

@@ -76,6 +76,27 @@ def test_windows_and_splits(tiny):
     assert torch.equal(ref, tiny["positions"][0, 0])
 
 
+def test_validation_tail_of_the_printed_scene(tiny):
+    """The thesis's one-trajectory protocol: the printed scene's last part before the 60 % cut validates
+    and stops training; the test range (after the cut) is untouched."""
+    from cmlearn.surrogate.training import SurrogateDataModule
+    ranges = split_ranges(3, 31, val_tail=0.2)
+    assert ranges["train"] == [(0, 0, 12), (1, 0, 30)] and ranges["val"] == [(0, 12, 18), (2, 0, 30)]
+    assert split_ranges(1, 31, val_tail=0.2) == {"train": [(0, 0, 12)], "val": [(0, 12, 18)], "test": [(0, 18, 30)]}
+    for bad in (-0.1, 0.6):
+        with pytest.raises(ValueError, match="val_tail"):
+            split_ranges(3, 31, val_tail=bad)
+    T = tiny["positions"].shape[1]
+    dm = SurrogateDataModule(tiny, eta=2, horizon=2, batch_size=8, val_tail=0.2)
+    cut, tail = round(0.6 * (T - 1)), round(0.4 * (T - 1))
+    hist = torch.cat([b[0] for b in dm.val_dataloader()])
+    assert torch.equal(hist[0], tiny["positions"][0, tail:tail + 3])  # the first window: the printed tail's start
+    assert all(b - a + 1 >= 3 for _, a, b in dm.ranges["val"]) and dm.ranges["test"] == [(0, cut, T - 1)]
+    assert len(dm.train_positions(fresh_validation=False, val_tail=0.2)[0]) == tail + 1
+    with pytest.raises(ValueError, match="val_tail and val_dataset"):
+        SurrogateDataModule(tiny, eta=2, horizon=2, val_dataset=tiny, val_tail=0.2)
+
+
 def test_ellipse_training_loops_leave_out_the_printed_and_held_out_shapes():
     task = get_task("ellipse")
     var = task.variants(task.base_scene(), 40, 0)

@@ -21,12 +21,19 @@ def node_wrench(wrench: Tensor, wrench_nodes, modeled) -> Tensor:
     return out
 
 
-def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, val_variants: int = 1):
+def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, val_variants: int = 1,
+                 val_tail: float = 0.0):
     """Frame ranges per split: variant 0 (the printed scene) trains on its first ``train_fraction`` and
-    evaluates on the rest; the last ``val_variants`` variants validate; all others train in full."""
+    evaluates on the rest; the last ``val_variants`` variants validate; all others train in full.
+    ``val_tail`` > 0: the printed scene's last ``val_tail`` of the trajectory before the cut validates
+    instead of training (the thesis's one-trajectory protocol, with ``n_variants`` 1)."""
+    if not 0.0 <= val_tail < train_fraction:
+        raise ValueError(f"val_tail must lie in [0, {train_fraction}) of the trajectory, got {val_tail}")
     cut = int(round(train_fraction * (n_frames - 1)))
-    train = [(0, 0, cut)] + [(v, 0, n_frames - 1) for v in range(1, n_variants - val_variants)]
-    val = [(v, 0, n_frames - 1) for v in range(max(1, n_variants - val_variants), n_variants)]
+    tail = int(round((train_fraction - val_tail) * (n_frames - 1)))
+    train = [(0, 0, tail)] + [(v, 0, n_frames - 1) for v in range(1, n_variants - val_variants)]
+    val = [(0, tail, cut)] if val_tail else []
+    val += [(v, 0, n_frames - 1) for v in range(max(1, n_variants - val_variants), n_variants)]
     test = [(0, cut, n_frames - 1)]
     return {"train": train, "val": val or test, "test": test}
 

@@ -24,13 +24,18 @@ class SurrogateDataModule(L.LightningDataModule):
     """Training windows from ``dataset`` (see :func:`split_ranges`). Validation: the dataset's last
     ``val_variants`` variants, or, where ``val_dataset`` is given (fresh variants of the same scene from
     another seed), its variants but the first (the printed scene, trained on), while all of ``dataset``
-    trains; validation windows start every ``val_stride`` frames. ``inputs`` (and ``val_inputs`` for a
+    trains; validation windows start every ``val_stride`` frames. ``val_tail``: the printed scene's last
+    part before the cut validates too (see :func:`split_ranges`). ``inputs`` (and ``val_inputs`` for a
     ``val_dataset``): the per-step inputs of a closed-loop ``wrench_fn``, in every window."""
 
     def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
                  num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None,
-                 val_dataset: dict | None = None, val_stride: int = 1, val_inputs: torch.Tensor | None = None):
+                 val_dataset: dict | None = None, val_stride: int = 1, val_inputs: torch.Tensor | None = None,
+                 val_tail: float = 0.0):
         super().__init__()
+        if val_dataset is not None and val_tail:
+            raise ValueError("val_tail and val_dataset: validate on the printed scene's tail or on fresh variants, "
+                             "not both")
         if val_dataset is not None and (inputs is None) != (val_inputs is None):
             raise ValueError("inputs and val_inputs: closed-loop inputs must be given for both datasets or neither")
         if val_dataset is None and val_inputs is not None:
@@ -41,8 +46,9 @@ class SurrogateDataModule(L.LightningDataModule):
         meta = dataset["meta"]
         self.positions = dataset["positions"]
         self.wrench = node_wrench(dataset["wrench"], meta["wrench_nodes"], meta["modeled"])
+        self.val_tail = val_tail
         self.ranges = split_ranges(meta["n_variants"], self.positions.shape[1],
-                                   val_variants=val_variants if val_dataset is None else 0)
+                                   val_variants=val_variants if val_dataset is None else 0, val_tail=val_tail)
         self.val_positions, self.val_wrench, self.val_inputs = self.positions, self.wrench, inputs
         if val_dataset is not None:
             vm = val_dataset["meta"]
@@ -55,13 +61,14 @@ class SurrogateDataModule(L.LightningDataModule):
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
         self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
 
-    def train_positions(self, fresh_validation: bool | None = None):
+    def train_positions(self, fresh_validation: bool | None = None, val_tail: float = 0.0):
         """Trajectories the scales may be computed from (training ranges only): this module's, or those of
-        a run with (``fresh_validation=True``: every variant trains) or without fresh validation variants."""
+        a run with (``fresh_validation=True``: every variant trains) or without fresh validation variants
+        and with the given ``val_tail``."""
         ranges = self.ranges["train"]
         if fresh_validation is not None:
             ranges = split_ranges(len(self.positions), self.positions.shape[1],
-                                  val_variants=0 if fresh_validation else 1)["train"]
+                                  val_variants=0 if fresh_validation else 1, val_tail=val_tail)["train"]
         return [self.positions[v, a:b + 1] for v, a, b in ranges]
 
     def _loader(self, split: str, shuffle: bool):
