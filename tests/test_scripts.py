@@ -138,7 +138,9 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
-                       (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0")):
+                       (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
+                       (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
+                       (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude")):
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
@@ -150,6 +152,25 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", mirror],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and "--mirror must name task 'semicircle'" in bad.stderr
+
+
+def test_train_surrogate_validates_on_the_printed_tail(tmp_path):
+    """--variants 1 --val-tail: the thesis's one-trajectory protocol; the logged val_rollout_mm is the
+    free-running error over the printed scene's tail before the cut, not over the test range after it."""
+    from cmlearn.data import load_dataset
+    from cmlearn.surrogate.checkpoint import load_checkpoint
+    from cmlearn.surrogate.training import RolloutSelection, SurrogateDataModule, SurrogateModule
+    run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--variants", "1",
+                "--val-tail", "0.2", "--threads", "1", "--max-time", "1e-6", "--out", "ck.pt", "--log-dir", "logs"],
+               tmp_path)
+    model, meta = load_checkpoint(tmp_path / "ck.pt", task="semicircle")
+    ep = [r for r in csv.DictReader(next((tmp_path / "logs").rglob("metrics.csv")).open()) if r.get("val_rollout_mm")]
+    assert meta["args"]["val_tail"] == 0.2 and len(ep) == 1  # one epoch, the one shipped
+    data = load_dataset(tmp_path / "data" / "semicircle_v1_s0_d0.3.pt")
+    score = {tail: RolloutSelection(SurrogateDataModule(data, eta=2, horizon=4, val_tail=tail)).score(
+        SurrogateModule(model)) for tail in (0.2, 0.0)}
+    assert score[0.2] == pytest.approx(float(ep[0]["val_rollout_mm"]), rel=1e-4)
+    assert abs(score[0.0] - score[0.2]) > 1e-3 * score[0.2]  # without the tail, the test range would validate
 
 
 def load_script(name):
