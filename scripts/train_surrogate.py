@@ -159,12 +159,12 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
     schedule. The scales must fit this run's data: the same data hash, or (regenerated data can differ in
     its last bits, for example on another machine) the scales this data gives within 1e-5, over the variants
-    the checkpoint's own run trained on (with or without --val-fresh). Returns the provenance the new
-    checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
+    the checkpoint's own run trained on (with or without --val-fresh, with its --val-tail). Returns the
+    provenance the new checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
     if meta.get("data_hash") != data["meta"]["data_hash"]:
         run = meta.get("args", {})
-        model.set_scales(dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0)),
-                         dm.wrench, float(init.length_scale))
+        trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
+        model.set_scales(trained, dm.wrench, float(init.length_scale))
         off = max(float(((getattr(model, k) - getattr(init, k)).abs() / getattr(init, k).abs()).max()) for k in SCALES)
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "

@@ -46,7 +46,6 @@ class SurrogateDataModule(L.LightningDataModule):
         meta = dataset["meta"]
         self.positions = dataset["positions"]
         self.wrench = node_wrench(dataset["wrench"], meta["wrench_nodes"], meta["modeled"])
-        self.val_tail = val_tail
         self.ranges = split_ranges(meta["n_variants"], self.positions.shape[1],
                                    val_variants=val_variants if val_dataset is None else 0, val_tail=val_tail)
         self.val_positions, self.val_wrench, self.val_inputs = self.positions, self.wrench, inputs
