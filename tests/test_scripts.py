@@ -197,7 +197,7 @@ def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
     (tmp_path / "ck.pt").write_bytes(b"weights")
     meta, data = {"data_hash": "a" * 16, "command": "train"}, {"meta": {"data_hash": "b" * 16}}
     for factor, fits in ((1 + 1e-12, True), (1.001, False)):
-        dm = SimpleNamespace(train_positions=lambda fresh_validation: [p * factor for p in trajs], wrench=wrench)
+        dm = SimpleNamespace(train_positions=lambda fresh_validation, val_tail: [p * factor for p in trajs], wrench=wrench)
         model = ts.build_model(task, a)
         if fits:
             prov = ts.start_from(model, init, meta, data, dm, str(tmp_path / "ck.pt"))
@@ -221,6 +221,12 @@ def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
     with pytest.raises(SystemExit, match="its scales differ"):  # as if that run had trained on every variant
         ts.start_from(ts.build_model(task, a), init, {**meta, "args": {"val_fresh": 4}}, data, dm_fresh,
                       str(tmp_path / "ck.pt"))
+    # a --val-tail run trained on less of the printed scene: its scales are compared over that part
+    init.set_scales(SurrogateDataModule(dset, eta=2, horizon=4, val_tail=0.3).train_positions(), dm_fresh.wrench, 0.6)
+    ts.start_from(ts.build_model(task, a), init, {**meta, "args": {"val_tail": 0.3}}, data, dm_fresh,
+                  str(tmp_path / "ck.pt"))
+    with pytest.raises(SystemExit, match="its scales differ"):
+        ts.start_from(ts.build_model(task, a), init, meta, data, dm_fresh, str(tmp_path / "ck.pt"))
 
 
 def test_surrogate_report(tmp_path):
