@@ -49,6 +49,7 @@ class Args:
     train_seed: int = opt(-1, "seeds the initial weights and the batch order (-1: --seed), for runs on the same data")
     eta: int = opt(2, "pose-history length each node's LSTM sees (the thesis's eta, >= 2)")
     hidden: int = opt(48, "LSTM hidden size per modelled node")
+    head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM")
     rest_anchor: bool = opt(False, "subtract the model's output at rest (scenes whose initial shape is an equilibrium)")
     mirror: str = opt("", "axis letters (x, y, z; e.g. zx): make the step equivariant under those reflections "
                           "of the task")
@@ -117,6 +118,8 @@ def parse(argv=None) -> Args:
         a.val_seed = a.seed + 1
     if a.val_fresh and a.val_seed == a.seed:
         ap.error(f"--val-seed must differ from --seed {a.seed}: the fresh variants would be the training ones")
+    if a.hidden < 1 or a.head_hidden < 1:
+        ap.error(f"--hidden and --head-hidden must be >= 1, got {a.hidden} and {a.head_hidden}")
     if a.max_time < 0:
         ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.train_seed < -1:
@@ -131,7 +134,8 @@ def parse(argv=None) -> Args:
 
 
 def model_config(task, a: Args):
-    return task.model_config(eta=a.eta, hidden=a.hidden, rest_anchor=a.rest_anchor, mirror=a.mirror)
+    return task.model_config(eta=a.eta, hidden=a.hidden, head_hidden=a.head_hidden, rest_anchor=a.rest_anchor,
+                             mirror=a.mirror)
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
@@ -148,7 +152,8 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         raise SystemExit(f"--init-from: {e}") from None
     if init.config != model_config(task, a):
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{model_config(task, a).to_dict()} (pass the same --eta, --hidden, --rest-anchor, --mirror)")
+                         f"{model_config(task, a).to_dict()} (pass the same --eta, --hidden, --head-hidden, --rest-anchor, "
+                         "--mirror)")
     return init, meta
 
 

@@ -95,9 +95,10 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
 def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path):
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
                 "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs", "--rest-anchor",
-                "--mirror", "zx"], tmp_path)
+                "--mirror", "zx", "--head-hidden", "24"], tmp_path)
     meta = json.loads((tmp_path / "ck.json").read_text())
-    assert meta["architecture"]["rest_anchor"] and meta["architecture"]["reflections"] == [[2, None], [0, list(range(22, -1, -1))]]
+    arch = meta["architecture"]
+    assert arch["head_hidden"] == 24 and arch["rest_anchor"] and arch["reflections"] == [[2, None], [0, list(range(22, -1, -1))]]
     rep = run_script([str(ROOT / "scripts/report_epoch_selection.py"), "ck.pt", "--out", "sel.md"], tmp_path)
     assert [e["epoch"] for e in rep["epochs"]] == [0, 1] and rep["cases"] == ["seen_last40", "semicircle_heldout"]
     scores = {e["epoch"]: e["val_rollout_mm"] for e in rep["epochs"]}
@@ -111,8 +112,9 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     assert "| epoch | val_loss | val_rollout_mm |" in (tmp_path / "sel.md").read_text()
     # --init-from starts from those weights, scales included: at lr 0 the run leaves them as they are
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
-                "--rest-anchor", "--mirror", "zx", "--init-from", "ck.pt", "--lr", "0", "--epochs", "1",
-                "--val-fresh", "2", "--val-stride", "2", "--out", "ft.pt", "--log-dir", "logs_ft"], tmp_path)
+                "--rest-anchor", "--mirror", "zx", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
+                "--epochs", "1", "--val-fresh", "2", "--val-stride", "2", "--out", "ft.pt", "--log-dir", "logs_ft"],
+               tmp_path)
     src, ft = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("ck.pt", "ft.pt"))
     assert src.keys() == ft.keys() and all(torch.equal(src[k], ft[k]) for k in src)
     ft_meta = json.loads((tmp_path / "ft.json").read_text())
@@ -138,6 +140,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
+                       (["--head-hidden", "0"], "--hidden and --head-hidden must be >= 1, got 48 and 0"),
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude")):

@@ -200,6 +200,9 @@ def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
     for bad in (((3, None),), ((2, None), (2, None)), ((2,),)):
         with pytest.raises(ValueError, match="reflections"):
             replace(free.config, reflections=bad)
+    for name in ("hidden", "head_hidden"):
+        with pytest.raises(ValueError, match=f"^{name} \\(layer width\\) must be >= 1, got 0"):
+            replace(free.config, **{name: 0})
 
 
 @torch.no_grad()

@@ -73,6 +73,9 @@ class NodeLSTMConfig:
             raise ValueError("modeled, left and right must be non-empty and of equal length")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
+        for name in ("hidden", "wrench_hidden", "embedding", "head_hidden"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} (layer width) must be >= 1, got {getattr(self, name)}")
         axes = [r[0] if isinstance(r, tuple) and len(r) == 2 else None for r in self.reflections]
         if any(a not in (0, 1, 2) for a in axes) or len(set(axes)) != len(axes):
             raise ValueError(f"reflections must be (axis, nodes) pairs on distinct world axes 0, 1 or 2, got "
