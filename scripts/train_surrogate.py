@@ -6,7 +6,8 @@ Generates the dataset with the physics if ``data/<task>_v<V>_s<seed>.pt`` is mis
 Lightning (progress bar, CSV and, when installed, TensorBoard logs under ``logs/``, checkpoint selection
 and early stopping on the validation windows' rollout loss or, with ``--select-by rollout``, on a
 free-running rollout of the whole validation trajectories, ``--resume`` from a Lightning checkpoint, ``--init-from``
-a shipped checkpoint's weights (fine-tuning with a fresh schedule), ``--ddp`` for
+a shipped checkpoint's weights (fine-tuning with a fresh schedule), ``--ema`` to validate and ship an
+exponential moving average of the weights, ``--ddp`` for
 multi-process data parallel, ``--accelerator gpu`` to train on a GPU; the checkpoint is always written for
 the CPU), evaluates one-step and free-running errors on the printed scene's unseen last 40 % and on the
 held-out scenes, and writes ``checkpoints/<task>.pt`` + ``.json`` with
@@ -62,6 +63,8 @@ class Args:
     train_batches: int = opt(0, "batches per epoch (0: all windows)")
     lr: float = opt(3e-3, "AdamW learning rate, cosine-annealed to 5 %% of it over --epochs")
     weight_decay: float = opt(1e-4, "AdamW weight decay")
+    ema: float = opt(0.0, "decay of an exponential moving average of the weights, updated every optimiser step, "
+                          "that validation scores and the checkpoint ships (0: off; e.g. 0.995)")
     noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale")
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
@@ -120,6 +123,8 @@ def parse(argv=None) -> Args:
         ap.error(f"--val-seed must differ from --seed {a.seed}: the fresh variants would be the training ones")
     if a.hidden < 1 or a.head_hidden < 1:
         ap.error(f"--hidden and --head-hidden must be >= 1, got {a.hidden} and {a.head_hidden}")
+    if not 0.0 <= a.ema < 1.0:
+        ap.error(f"--ema must lie in [0, 1) (0: off), got {a.ema}")
     if a.max_time < 0:
         ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.train_seed < -1:
@@ -198,6 +203,14 @@ def evaluate_all(model, task, data: dict, a: Args) -> dict:
     return metrics
 
 
+def ema_callback(decay: float):
+    """Lightning's weight averaging as an exponential moving average of the parameters (the buffers, the
+    model's fixed scales and index maps, are not averaged)."""
+    from lightning.pytorch.callbacks import WeightAveraging
+    from torch.optim.swa_utils import get_ema_multi_avg_fn
+    return WeightAveraging(multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=False)
+
+
 def main(argv=None):
     a = parse(argv)
     import lightning as L
@@ -246,13 +259,17 @@ def main(argv=None):
     except ImportError:
         pass
     monitor = SELECT_METRICS[a.select_by]
+    # the average must come after RolloutSelection: it swaps its weights in for the validation epoch and back
+    # out at the epoch's end, where val_rollout_mm is scored; checkpoints hold the averaged weights
+    averaging = [ema_callback(a.ema)] if a.ema else []
     ckpt_cb = ModelCheckpoint(dirpath=Path(loggers[0].log_dir) / "ckpt", monitor=monitor, save_last=True,
                               save_top_k=a.keep_top_k, filename="{epoch}-{val_loss:.1f}-{val_rollout_mm:.1f}")
     trainer = L.Trainer(
         max_epochs=a.epochs, max_time={"seconds": a.max_time * 60} if a.max_time else None, logger=loggers,
         enable_progress_bar=True,
         deterministic=True if a.accelerator == "cpu" else "warn",
-        callbacks=[RolloutSelection(dm, a.select_steps, wrench_fn=wrench_fn), EarlyStopping(monitor, patience=a.patience), ckpt_cb],
+        callbacks=[RolloutSelection(dm, a.select_steps, wrench_fn=wrench_fn), *averaging,
+                   EarlyStopping(monitor, patience=a.patience), ckpt_cb],
         gradient_clip_val=1.0, limit_train_batches=a.train_batches or 1.0, accelerator=a.accelerator,
         devices=a.devices, strategy="ddp" if a.ddp else "auto", log_every_n_steps=10, num_sanity_val_steps=0)
     if init_from is not None:  # the starting weights' validation metrics (not logged): did fine-tuning beat them?

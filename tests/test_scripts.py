@@ -176,6 +176,49 @@ def test_train_surrogate_validates_on_the_printed_tail(tmp_path):
     assert abs(score[0.0] - score[0.2]) > 1e-3 * score[0.2]  # without the tail, the test range would validate
 
 
+def test_train_surrogate_ema_validates_and_ships_the_averaged_weights(tmp_path):
+    """--ema: an exponential moving average of the weights, updated every optimiser step, is what each
+    epoch validates and what the checkpoint ships; the optimisation itself is the run's without it."""
+    from cmlearn.data import load_dataset
+    from cmlearn.surrogate.checkpoint import load_checkpoint
+    from cmlearn.surrogate.training import RolloutSelection, SurrogateDataModule, SurrogateModule
+    common = ["--quick", "--task", "semicircle", "--threads", "1", "--keep-top-k", "-1", "--select-by", "rollout"]
+    for name, extra in (("ema", ["--ema", "0.75"]), ("plain", [])):
+        run_script([str(ROOT / "scripts/train_surrogate.py"), *common, *extra, "--out", f"{name}.pt",
+                    "--log-dir", f"logs_{name}"], tmp_path)
+    logs = {name: [r for r in csv.DictReader(next((tmp_path / f"logs_{name}").rglob("metrics.csv")).open())]
+            for name in ("ema", "plain")}
+    train = {name: [float(r["train_loss"]) for r in rows if r.get("train_loss")] for name, rows in logs.items()}
+    assert len(train["ema"]) == 2 and train["ema"] == train["plain"]  # the same optimisation path
+    ckpts = {int(f.name.split("-")[0].split("=")[1]): torch.load(f, weights_only=False)
+             for f in (tmp_path / "logs_ema").rglob("epoch=*.ckpt")}
+    assert sorted(ckpts) == [0, 1] and [c["global_step"] for c in (ckpts[0], ckpts[1])] == [1, 2]
+    raw = [ckpts[e]["current_model_state"] for e in (0, 1)]
+    avg = [ckpts[e]["state_dict"] for e in (0, 1)]
+    weights = [k for k in avg[1] if k.endswith("weight") and "head" in k]
+    assert weights and all(torch.equal(avg[0][k], raw[0][k]) for k in weights)  # the first update copies
+    for k in weights:  # then ema <- 0.75 ema + 0.25 w
+        assert torch.allclose(avg[1][k], 0.75 * raw[0][k] + 0.25 * raw[1][k], atol=1e-7)
+    assert any(not torch.equal(avg[1][k], raw[1][k]) for k in weights)
+    model, meta = load_checkpoint(tmp_path / "ema.pt", task="semicircle")
+    val = [r for r in logs["ema"] if r.get("val_rollout_mm")]
+    best = min(range(len(val)), key=lambda e: float(val[e]["val_rollout_mm"]))
+    shipped = torch.load(tmp_path / "ema.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(shipped[k], avg[best]["model." + k]) for k in shipped if "model." + k in avg[best])
+    data = load_dataset(tmp_path / "data" / "semicircle_v3_s0_d0.3.pt")
+    module = SurrogateModule(model)
+    module.load_state_dict(avg[1])  # epoch 1 validated its average, not its raw weights
+    score = RolloutSelection(SurrogateDataModule(data, eta=2, horizon=4)).score(module)
+    assert score == pytest.approx(float(val[1]["val_rollout_mm"]), rel=1e-5)
+    module.load_state_dict(raw[1])
+    score_raw = RolloutSelection(SurrogateDataModule(data, eta=2, horizon=4)).score(module)
+    assert abs(score_raw - score) > 1e-4 * score
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--ema", "1"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "--ema must lie in [0, 1) (0: off), got 1.0" in bad.stderr
+
+
 def load_script(name):
     import importlib.util
     spec = importlib.util.spec_from_file_location(f"script_{name}", ROOT / f"scripts/{name}.py")
