@@ -129,6 +129,10 @@ def parse(argv=None) -> Args:
         ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
+    if a.resume and not a.ema and Path(a.resume).is_file() and \
+            "current_model_state" in torch.load(a.resume, map_location="cpu", weights_only=False):
+        ap.error(f"--resume: {a.resume} comes from a run with --ema (its state_dict holds the averaged weights, "
+                 "the optimiser's own are beside them): resume it with the same --ema")
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")

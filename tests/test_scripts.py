@@ -214,9 +214,12 @@ def test_train_surrogate_ema_validates_and_ships_the_averaged_weights(tmp_path):
     score_raw = RolloutSelection(SurrogateDataModule(data, eta=2, horizon=4)).score(module)
     assert abs(score_raw - score) > 1e-4 * score
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--ema", "1"],
-                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-    assert bad.returncode != 0 and "--ema must lie in [0, 1) (0: off), got 1.0" in bad.stderr
+    last = next((tmp_path / "logs_ema").rglob("last.ckpt"))
+    for extra, msg in ((["--ema", "1"], "--ema must lie in [0, 1) (0: off), got 1.0"),
+                       (["--resume", str(last)], f"--resume: {last} comes from a run with --ema")):
+        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
 
 
 def load_script(name):
