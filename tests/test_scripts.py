@@ -20,6 +20,13 @@ def run_script(args, tmp_path):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def script_fails(args, tmp_path, msg: str) -> None:
+    """The script exits with an error whose message contains ``msg``."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    bad = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
+
+
 def test_bench_lgvi_quick(tmp_path):
     pytest.importorskip("elastica")
     res = run_script([str(ROOT / "scripts/bench/lgvi.py"), "--quick", "--no-compile", "--window", "0.05",
@@ -85,10 +92,8 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
     assert meta["val_data_hash"] and meta["val_data_hash"] != meta["data_hash"]  # closed-loop inputs of fresh variants
     # the time budget ends the run after its first epoch of the two --quick allows, then it evaluates as usual
     assert meta["epochs_run"] == 1 and "orientation_deg" in meta["metrics"]["seen_last40"]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    out = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle",
-                          "--closed-loop"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-    assert out.returncode != 0 and "--closed-loop: task 'semicircle'" in out.stderr
+    script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--closed-loop"], tmp_path,
+                 "--closed-loop: task 'semicircle'")
     assert not list((tmp_path / "data").glob("semicircle*"))  # refused before generating any data
 
 
@@ -130,13 +135,10 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     fresh = torch.load(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", weights_only=False)  # validated on
     assert ft_meta["val_data_hash"] == fresh["meta"]["data_hash"] and ft_meta["args"]["val_seed"] == 1
     assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file"),
                        (["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude")):
-        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1",
-                              *extra], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
+        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
     for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
@@ -144,17 +146,15 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude")):
-        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
+        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     usage = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--help"],
                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600).stdout
     usage = " ".join(usage.split())  # every option explained, whatever the terminal width
     assert "--rest-anchor subtract the model's output at rest" in usage and usage.count("(default:") >= 30
     for mirror in ("w", "zz"):
-        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", mirror],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-        assert bad.returncode != 0 and "--mirror must name task 'semicircle'" in bad.stderr
+        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", mirror], tmp_path,
+                     "--mirror must name task 'semicircle'")
 
 
 def test_train_surrogate_validates_on_the_printed_tail(tmp_path):
@@ -214,13 +214,10 @@ def test_train_surrogate_ema_validates_and_ships_the_averaged_weights(tmp_path):
     assert score == pytest.approx(float(val[1]["val_rollout_mm"]), rel=1e-5)
     module.load_state_dict(raw[1])
     assert abs(selection.score(module) - score) > 1e-4 * score
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     last = next((tmp_path / "logs_ema").rglob("last.ckpt"))
     for extra, msg in ((["--ema", "1"], "--ema must lie in [0, 1) (0: off), got 1.0"),
                        (["--resume", str(last)], f"--resume: {last} comes from a run with --ema")):
-        bad = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
+        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
 
 
 def load_script(name):
@@ -322,10 +319,8 @@ def test_load_amplitude_report_quick(tmp_path):
     assert pushed["range_mm"][2] > 20.0 and pushed["range_mm"][0] < 1e-6
     err = pushed["errors"]["semicircle_fast.pt"]
     assert err["pct_of_range"][2] == pytest.approx(100 * err["max_mm"][2] / pushed["range_mm"][2])
-    bad = subprocess.run([sys.executable, str(ROOT / "scripts/report_load_amplitude.py"), "--checkpoints",
-                          str(ROOT / "checkpoints/semicircle.pt"), str(ROOT / "checkpoints/square_tracking.pt")], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=300)
-    assert bad.returncode != 0 and "--checkpoints" in bad.stderr
+    script_fails([str(ROOT / "scripts/report_load_amplitude.py"), "--checkpoints", str(ROOT / "checkpoints/semicircle.pt"),
+                  str(ROOT / "checkpoints/square_tracking.pt")], tmp_path, "--checkpoints")
 
 
 def test_one_step_bias_report_quick(tmp_path):
@@ -369,10 +364,7 @@ def test_rank_checkpoints_on_fresh_variants(tmp_path):
     from cmlearn.surrogate import save_checkpoint
     _, meta = load_checkpoint(cks[1])  # semicircle_fast.pt, as if selected on seed-1 fresh variants
     save_checkpoint(tmp_path / "val1.pt", model, {**meta, "args": {**meta["args"], "val_fresh": 2, "val_seed": 1}})
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for extra, msg in ((["--seed", "0"], "--seed 0 is the data seed of"),
                        ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task"),
                        (["val1.pt", "--seed", "1"], "--seed 1 drew the validation variants of val1.pt")):
-        bad = subprocess.run([sys.executable, str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], cwd=tmp_path,
-                             env=env, capture_output=True, text=True, timeout=600)
-        assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
+        script_fails([str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], tmp_path, msg)
