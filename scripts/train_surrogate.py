@@ -66,6 +66,9 @@ class Args:
     ema: float = opt(0.0, "decay of an exponential moving average of the weights, updated every optimiser step, "
                           "that validation scores and the checkpoint ships (0: off; e.g. 0.995)")
     noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale")
+    time_reversal: bool = opt(False, "also train on every window played backwards (undamped scenes with "
+                                     "time-dependent forces only, whose motion is time-reversible): the step "
+                                     "cannot learn to dissipate energy")
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
     one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss")
@@ -127,6 +130,12 @@ def parse(argv=None) -> Args:
         ap.error(f"--ema must lie in [0, 1) (0: off), got {a.ema}")
     if a.max_time < 0:
         ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
+    if a.time_reversal:
+        task = get_task(a.task)
+        rod = task.base_scene().rod
+        if task.custom or rod.damping or rod.rotational_damping:
+            ap.error(f"--time-reversal: task {a.task!r} is not time-reversible (damped, or its wrench depends on the "
+                     "rod's own state)")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
     if a.resume and not a.ema and Path(a.resume).is_file() and \
@@ -244,7 +253,7 @@ def main(argv=None):
         inputs, val_inputs = inputs_of(task, data), inputs_of(task, val_data) if val_data else None
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
                              inputs=inputs, val_dataset=val_data, val_stride=a.val_stride, val_inputs=val_inputs,
-                             val_tail=a.val_tail)
+                             val_tail=a.val_tail, time_reversal=a.time_reversal)
     model = build_model(task, a)
     init_from = None
     if init is None:

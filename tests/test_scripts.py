@@ -100,9 +100,10 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
 def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path):
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
                 "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs", "--rest-anchor",
-                "--mirror", "zx", "--head-hidden", "24"], tmp_path)
+                "--mirror", "zx", "--head-hidden", "24", "--time-reversal"], tmp_path)
     meta = json.loads((tmp_path / "ck.json").read_text())
     arch = meta["architecture"]
+    assert meta["args"]["time_reversal"] and "--time-reversal" in meta["command"]
     assert arch["head_hidden"] == 24 and arch["rest_anchor"] and arch["reflections"] == [[2, None], [0, list(range(22, -1, -1))]]
     rep = run_script([str(ROOT / "scripts/report_epoch_selection.py"), "ck.pt", "--out", "sel.md"], tmp_path)
     assert [e["epoch"] for e in rep["epochs"]] == [0, 1] and rep["cases"] == ["seen_last40", "semicircle_heldout"]
@@ -145,7 +146,9 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--head-hidden", "0"], "--hidden and --head-hidden must be >= 1, got 48 and 0"),
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
-                       (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude")):
+                       (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude"),
+                       (["--task", "magnetic_rod", "--time-reversal"],
+                        "--time-reversal: task 'magnetic_rod' is not time-reversible")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     usage = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--help"],

@@ -76,6 +76,31 @@ def test_windows_and_splits(tiny):
     assert torch.equal(ref, tiny["positions"][0, 0])
 
 
+def test_time_reversed_windows_play_the_frames_and_forces_backwards(tiny):
+    """--time-reversal: each training window also runs from its last frame to its first, each step under
+    the force of the interval it crosses (the stored forces are interval midpoints); validation stays
+    forward. That this is a motion of the same rod: test_lgvi's test_undamped_motion_is_time_reversible."""
+    from cmlearn.surrogate.training import SurrogateDataModule
+    meta, P = tiny["meta"], tiny["positions"]
+    wr = node_wrench(tiny["wrench"], meta["wrench_nodes"], meta["modeled"])
+    wr[1] = torch.randn_like(wr[1])  # a force that changes every interval, so that any misalignment shows
+    fwd = RolloutWindows(P, wr, [(1, 0, 30)], eta=2, horizon=4)
+    both = RolloutWindows(P, wr, [(1, 0, 30)], eta=2, horizon=4, time_reversal=True)
+    assert len(both) == 2 * len(fwd) == 2 * 25
+    for i in (0, 11, 24):
+        hist, fut, w, ref = both[len(fwd) + i]
+        t = fwd.index[i][1]  # forward: frames t-2 .. t, then t+1 .. t+4 under forces t .. t+3
+        assert torch.equal(hist, P[1, [t + 4, t + 3, t + 2]]) and torch.equal(fut, P[1, [t + 1, t, t - 1, t - 2]])
+        assert torch.equal(w, wr[1, [t + 1, t, t - 1, t - 2]]) and torch.equal(ref, P[1, 0])
+        assert all(torch.equal(a, b) for a, b in zip(both[i], fwd[i]))
+    with pytest.raises(ValueError, match="time_reversal"):
+        RolloutWindows(P, wr, [(1, 0, 30)], eta=2, horizon=4, inputs=torch.zeros(3, 30, 2), time_reversal=True)
+    dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=4, time_reversal=True)
+    plain = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=4)
+    assert len(dm.train_dataloader().dataset) == 2 * len(plain.train_dataloader().dataset)
+    assert len(dm.val_dataloader().dataset) == len(plain.val_dataloader().dataset)
+
+
 def test_validation_tail_of_the_printed_scene(tiny):
     """The thesis's one-trajectory protocol: the printed scene's last part before the 60 % cut validates
     and stops training; the test range (after the cut) is untouched."""

@@ -1,6 +1,13 @@
 """Training windows: (history of eta + 1 frames, the next H frames, the node forces over them, the
 trajectory's first frame as the reference shape and, where given, per-step inputs of the task's own
-wrench model over them)."""
+wrench model over them), optionally also played backwards.
+
+Time reversal: an undamped rod under forces that depend on time only (no damping, no velocity
+dependence) moves on a time-reversible trajectory: the same frames in reverse order, under the same
+forces in reverse order, are a motion of the same system. The LGVI keeps that symmetry (a symmetric
+discrete Lagrangian) and the stored forces are interval midpoints, so the reversed window is exact:
+its step from frame k + 1 to frame k uses the force of interval k. A surrogate trained on both
+directions cannot learn to dissipate (or pump) energy, which the reversed windows would penalise."""
 from __future__ import annotations
 
 import torch
@@ -41,26 +48,35 @@ def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, va
 class RolloutWindows(Dataset):
     """Every ``stride``-th window start inside the given ``ranges`` [(variant, first_frame, last_frame)]. ``inputs``
     (V, T-1, ...), optional: what a closed-loop training rollout computes each step's wrench from (e.g.
-    :func:`cmlearn.surrogate.magnetic.closed_loop_inputs`), windowed like ``wrench``."""
+    :func:`cmlearn.surrogate.magnetic.closed_loop_inputs`), windowed like ``wrench``. ``time_reversal``:
+    every window also played backwards (the second half of the index; see the module's docstring)."""
 
     def __init__(self, positions: Tensor, wrench: Tensor, ranges, eta: int, horizon: int,
-                 inputs: Tensor | None = None, stride: int = 1):
+                 inputs: Tensor | None = None, stride: int = 1, time_reversal: bool = False):
         if inputs is not None and inputs.shape[:2] != wrench.shape[:2]:
             raise ValueError(f"inputs {tuple(inputs.shape)} must match wrench {tuple(wrench.shape)} in (V, T-1)")
+        if inputs is not None and time_reversal:
+            raise ValueError("time_reversal: a closed-loop wrench model's inputs are not reversible windows")
         self.positions, self.wrench, self.inputs = positions, wrench, inputs
         self.W, self.H = eta + 1, horizon
         self.index = []
         for v, a, b in ranges:
             for t in range(a + self.W - 1, b - horizon + 1, stride):  # t = last history frame
-                self.index.append((v, t))
+                self.index.append((v, t, False))
         if not self.index:
             raise ValueError(f"no window of {self.W} + {horizon} frames fits the ranges {ranges}")
+        if time_reversal:
+            self.index += [(v, t, True) for v, t, _ in self.index]
 
     def __len__(self) -> int:
         return len(self.index)
 
     def __getitem__(self, i):
-        v, t = self.index[i]
+        v, t, backwards = self.index[i]
         p = self.positions[v]
+        if backwards:  # frames s .. e = t + H played from e down to s, interval forces likewise
+            s = t - self.W + 1
+            frames = p[s:t + 1 + self.H].flip(0)
+            return frames[:self.W], frames[self.W:], self.wrench[v, s:s + self.H].flip(0), p[0]
         out = (p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H], p[0])
         return out if self.inputs is None else (*out, self.inputs[v, t:t + self.H])

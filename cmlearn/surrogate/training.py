@@ -26,12 +26,13 @@ class SurrogateDataModule(L.LightningDataModule):
     another seed), its variants but the first (the printed scene, trained on), while all of ``dataset``
     trains; validation windows start every ``val_stride`` frames. ``val_tail``: the printed scene's last
     part before the cut validates too (see :func:`split_ranges`). ``inputs`` (and ``val_inputs`` for a
-    ``val_dataset``): the per-step inputs of a closed-loop ``wrench_fn``, in every window."""
+    ``val_dataset``): the per-step inputs of a closed-loop ``wrench_fn``, in every window. ``time_reversal``:
+    the training windows also play backwards (undamped scenes; :class:`RolloutWindows`), validation does not."""
 
     def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
                  num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None,
                  val_dataset: dict | None = None, val_stride: int = 1, val_inputs: torch.Tensor | None = None,
-                 val_tail: float = 0.0):
+                 val_tail: float = 0.0, time_reversal: bool = False):
         super().__init__()
         if val_dataset is not None and val_tail:
             raise ValueError("val_tail and val_dataset: validate on the printed scene's tail or on fresh variants, "
@@ -59,6 +60,7 @@ class SurrogateDataModule(L.LightningDataModule):
             self.ranges["val"] = [(v, 0, self.val_positions.shape[1] - 1) for v in range(1, vm["n_variants"])]
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
         self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
+        self.time_reversal = time_reversal
 
     def train_positions(self, fresh_validation: bool | None = None, val_tail: float = 0.0):
         """Trajectories the scales may be computed from (training ranges only): this module's, or those of
@@ -75,7 +77,8 @@ class SurrogateDataModule(L.LightningDataModule):
             ds = RolloutWindows(self.val_positions, self.val_wrench, self.ranges["val"], self.eta, self.horizon,
                                 self.val_inputs, stride=self.val_stride)
         else:
-            ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs)
+            ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs,
+                                time_reversal=self.time_reversal)
         g = torch.Generator().manual_seed(self.seed)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
                           num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
