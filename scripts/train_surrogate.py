@@ -67,8 +67,8 @@ class Args:
                           "that validation scores and the checkpoint ships (0: off; e.g. 0.995)")
     noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale")
     time_reversal: bool = opt(False, "also train on every window played backwards (undamped scenes with "
-                                     "time-dependent forces only, whose motion is time-reversible): the step "
-                                     "cannot learn to dissipate energy")
+                                     "time-dependent forces only, whose motion is time-reversible), which "
+                                     "penalises a step that dissipates energy")
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
     one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss")

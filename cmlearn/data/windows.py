@@ -4,10 +4,10 @@ wrench model over them), optionally also played backwards.
 
 Time reversal: an undamped rod under forces that depend on time only (no damping, no velocity
 dependence) moves on a time-reversible trajectory: the same frames in reverse order, under the same
-forces in reverse order, are a motion of the same system. The LGVI keeps that symmetry (a symmetric
-discrete Lagrangian) and the stored forces are interval midpoints, so the reversed window is exact:
-its step from frame k + 1 to frame k uses the force of interval k. A surrogate trained on both
-directions cannot learn to dissipate (or pump) energy, which the reversed windows would penalise."""
+forces in reverse order, are a motion of the same system. The LGVI keeps that symmetry to round-off
+(tests/test_lgvi.py) and the stored forces are interval midpoints, so the reversed window is exact:
+its step from frame k + 1 to frame k uses the force of interval k. A step that has learnt to dissipate
+(or pump) energy fits the reversed windows badly, so training on both directions penalises that."""
 from __future__ import annotations
 
 import torch
