@@ -74,9 +74,9 @@ class RolloutWindows(Dataset):
     def __getitem__(self, i):
         v, t, backwards = self.index[i]
         p = self.positions[v]
-        if backwards:  # frames s .. e = t + H played from e down to s, interval forces likewise
-            s = t - self.W + 1
-            frames = p[s:t + 1 + self.H].flip(0)
-            return frames[:self.W], frames[self.W:], self.wrench[v, s:s + self.H].flip(0), p[0]
-        out = (p[t - self.W + 1:t + 1], p[t + 1:t + 1 + self.H], self.wrench[v, t:t + self.H], p[0])
+        s = t - self.W + 1  # the window's frames s .. t + H
+        frames, wrench = p[s:t + 1 + self.H], self.wrench[v, t:t + self.H]
+        if backwards:  # played from t + H down to s, each step under the force of the interval it crosses
+            frames, wrench = frames.flip(0), self.wrench[v, s:s + self.H].flip(0)
+        out = (frames[:self.W], frames[self.W:], wrench, p[0])
         return out if self.inputs is None else (*out, self.inputs[v, t:t + self.H])
