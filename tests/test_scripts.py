@@ -13,17 +13,21 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_script(args, tmp_path):
+def run(args, tmp_path) -> subprocess.CompletedProcess:
+    """``python ARGS`` in ``tmp_path`` with the repository importable."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    return subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+
+
+def run_script(args, tmp_path):
+    out = run(args, tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def script_fails(args, tmp_path, msg: str) -> None:
     """The script exits with an error whose message contains ``msg``."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    bad = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    bad = run(args, tmp_path)
     assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
 
 
@@ -150,9 +154,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--task", "magnetic_rod", "--time-reversal"],
                         "--time-reversal: task 'magnetic_rod' is not time-reversible")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    usage = subprocess.run([sys.executable, str(ROOT / "scripts/train_surrogate.py"), "--help"],
-                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600).stdout
+    usage = run([str(ROOT / "scripts/train_surrogate.py"), "--help"], tmp_path).stdout
     usage = " ".join(usage.split())  # every option explained, whatever the terminal width
     assert "--rest-anchor subtract the model's output at rest" in usage and usage.count("(default:") >= 30
     for mirror in ("w", "zz"):
