@@ -21,7 +21,7 @@ import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
@@ -52,6 +52,9 @@ class Args:
     hidden: int = opt(48, "LSTM hidden size per modelled node")
     head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM")
     rest_anchor: bool = opt(False, "subtract the model's output at rest (scenes whose initial shape is an equilibrium)")
+    chord_projection: bool = opt(False, "after every rollout step move the modelled nodes (least squares) so that "
+                                        "each chord between consecutive tracked nodes keeps its reference length "
+                                        "(the rod hardly stretches); no weights, so --init-from may add it")
     mirror: str = opt("", "axis letters (x, y, z; e.g. zx): make the step equivariant under those reflections "
                           "of the task")
     horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
@@ -136,6 +139,8 @@ def parse(argv=None) -> Args:
         if task.custom or rod.damping or rod.rotational_damping:
             ap.error(f"--time-reversal: task {a.task!r} is not time-reversible (damped, or its wrench depends on the "
                      "rod's own state)")
+    if a.chord_projection and get_task(a.task).custom:
+        ap.error(f"--chord-projection: task {a.task!r} tracks points that are not a chain along the rod (markers)")
     if a.train_seed < -1:
         ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
     if a.resume and not a.ema and Path(a.resume).is_file() and \
@@ -153,7 +158,7 @@ def parse(argv=None) -> Args:
 
 def model_config(task, a: Args):
     return task.model_config(eta=a.eta, hidden=a.hidden, head_hidden=a.head_hidden, rest_anchor=a.rest_anchor,
-                             mirror=a.mirror)
+                             chord_projection=a.chord_projection, mirror=a.mirror)
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
@@ -168,7 +173,7 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         init, meta = load_checkpoint(a.init_from, task=task.name)
     except CheckpointError as e:
         raise SystemExit(f"--init-from: {e}") from None
-    if init.config != model_config(task, a):
+    if replace(init.config, chord_projection=a.chord_projection) != model_config(task, a):
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
                          f"{model_config(task, a).to_dict()} (pass the same --eta, --hidden, --head-hidden, --rest-anchor, "
                          "--mirror)")

@@ -140,6 +140,13 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     fresh = torch.load(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", weights_only=False)  # validated on
     assert ft_meta["val_data_hash"] == fresh["meta"]["data_hash"] and ft_meta["args"]["val_seed"] == 1
     assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
+    # the chord projection has no weights: a run may add it to a checkpoint trained without
+    run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
+                "--rest-anchor", "--mirror", "zx", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
+                "--epochs", "1", "--chord-projection", "--out", "cp.pt", "--log-dir", "logs_cp"], tmp_path)
+    cp = torch.load(tmp_path / "cp.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(src[k], cp[k]) for k in src)
+    assert json.loads((tmp_path / "cp.json").read_text())["architecture"]["chord_projection"]
     for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file"),
                        (["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude")):
@@ -152,7 +159,9 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude"),
                        (["--task", "magnetic_rod", "--time-reversal"],
-                        "--time-reversal: task 'magnetic_rod' is not time-reversible")):
+                        "--time-reversal: task 'magnetic_rod' is not time-reversible"),
+                       (["--task", "magnetic_rod", "--chord-projection"],
+                        "--chord-projection: task 'magnetic_rod' tracks points that are not a chain")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
     usage = run([str(ROOT / "scripts/train_surrogate.py"), "--help"], tmp_path).stdout
     usage = " ".join(usage.split())  # every option explained, whatever the terminal width
@@ -373,3 +382,33 @@ def test_rank_checkpoints_on_fresh_variants(tmp_path):
                        ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task"),
                        (["val1.pt", "--seed", "1"], "--seed 1 drew the validation variants of val1.pt")):
         script_fails([str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], tmp_path, msg)
+
+
+def test_report_node_recursion_splits_the_free_running_error(tmp_path):
+    """One-step, the node of interest alone on its own predictions, free-running: each row the evaluation
+    functions' errors; a task with its own evaluation is refused."""
+    from dataclasses import replace
+
+    from cmlearn.data import get_task, scene_rollout
+    from cmlearn.data.windows import node_wrench
+    from cmlearn.eval.metrics import axis_errors
+    from cmlearn.surrogate import load_checkpoint
+    from cmlearn.surrogate.evaluate import interest_slots, node_recursive
+    ck = str(ROOT / "checkpoints" / "semicircle_fast.pt")
+    res = run_script([str(ROOT / "scripts/report_node_recursion.py"), ck, "--duration", "0.3", "--out", "nr.md"],
+                     tmp_path)
+    seen, held = res[ck]
+    assert seen["case"] == "semicircle (last 40 %)" and held["case"] == "semicircle_heldout" and seen["node"] == 50
+    for row in (seen, held):
+        assert set(row) >= {"one_step", "node_alone", "free_running", "chord_error_mm", "lgvi_chord_change_mm"}
+    assert seen["node_alone"]["y"]["max_mm"] > seen["one_step"]["y"]["max_mm"] > 0.01
+    task, (model, _) = get_task("semicircle"), load_checkpoint(ck)
+    p, w, _ = scene_rollout(task, replace(task.base_scene(), duration=0.3))
+    slot, start = interest_slots(task, task.base_scene())[0], int(round(0.6 * 30))
+    pred = node_recursive(model, p, node_wrench(w.float(), task.wrench_nodes, task.modeled), start, slot)
+    want = axis_errors(pred.double(), p[start + 1:, slot].double(), task.base_scene().rod.length)
+    assert seen["node_alone"]["y"]["max_mm"] == pytest.approx(want["y"]["max_mm"], rel=1e-4)
+    table = (tmp_path / "nr.md").read_text()
+    assert "semicircle (last 40 %) (node 51) |" in table and "semicircle_heldout (node 51) |" in table
+    script_fails([str(ROOT / "scripts/report_node_recursion.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt")],
+                 tmp_path, "has its own evaluation")

@@ -63,6 +63,7 @@ class NodeLSTMConfig:
     embedding: int = 8
     head_hidden: int = 64
     rest_anchor: bool = False      # subtract the output at rest: the reference shape is an equilibrium
+    chord_projection: bool = False  # after each rollout step, give every tracked chord its reference length
     # generators of the mirror symmetries: (world axis negated, tracked index of each tracked node's mirror
     # image or None for itself), one per axis
     reflections: tuple[tuple[int, tuple[int, ...] | None], ...] = ()
@@ -122,6 +123,9 @@ class NodeLSTMSurrogate(nn.Module):
         nn.init.zeros_(self.head[-1].bias)
         for name, idx in (("idx_modeled", c.modeled), ("idx_left", c.left), ("idx_right", c.right)):
             self.register_buffer(name, torch.tensor(idx, dtype=torch.long), persistent=False)
+        movable = torch.zeros(c.n_tracked)
+        movable[list(c.modeled)] = 1.0
+        self.register_buffer("movable", movable, persistent=False)  # (n_tracked,): 1 modelled, 0 anchor
         free_end = torch.tensor([float(r == m) for r, m in zip(c.right, c.modeled)])
         self.register_buffer("has_right", 1.0 - free_end[:, None], persistent=False)
         self.register_buffer("length_scale", torch.ones(()))
@@ -301,6 +305,42 @@ class NodeLSTMSurrogate(nn.Module):
         pk = hist[:, -1, self.idx_modeled]
         return 2 * pk - hist[:, -2, self.idx_modeled] + a
 
+    def project_chords(self, frame: Tensor, ref: Tensor, iters: int = 2) -> Tensor:
+        """``frame`` (B, n_tracked, 3) with the modelled nodes moved, anchors fixed, so that every chord between
+        consecutive tracked nodes has its length in ``ref`` (B, n_tracked, 3): ``iters`` Gauss-Newton steps
+        ``x -= J^T (J J^T)^-1 g`` for the chord errors ``g`` (``J J^T`` is tridiagonal along the chain), each
+        the smallest move that fixes the chords to first order, so the result is the nearest such frame up to
+        terms quadratic in the chord errors. Differentiable. Under mirror symmetries the result is the mean of the
+        projections of every mirror image mapped back, so that float rounding cannot break the symmetry (a motion in
+        a mirror plane or symmetric about it stays so exactly, as the step keeps it)."""
+        G, B = self.mirror_sign.shape[0], frame.shape[0]
+        if G == 1:
+            return self._project_chords(frame, ref, iters)
+        S = self.mirror_sign[None, :, None]  # (1, G, 1, 3); each element is its own inverse: g x = S * x[perm]
+        images = (frame[:, self.mirror_perm] * S).movedim(1, 0).flatten(0, 1)
+        refs = (ref[:, self.mirror_perm] * S).movedim(1, 0).flatten(0, 1)
+        out = self._project_chords(images, refs, iters).unflatten(0, (G, B))  # (G, B, n_tracked, 3)
+        back = torch.stack([out[g][:, self.mirror_perm[g]] * self.mirror_sign[g] for g in range(G)])
+        return back.mean(0)
+
+    def _project_chords(self, frame: Tensor, ref: Tensor, iters: int) -> Tensor:
+        target = (ref[:, 1:] - ref[:, :-1]).norm(dim=-1)
+        m = self.movable
+        both = m[:-1] + m[1:]  # a chord between two anchors cannot change: its row is left out
+        pinned = both == 0
+        for _ in range(iters):
+            d = frame[:, 1:] - frame[:, :-1]
+            length = d.norm(dim=-1)
+            u = d / length.unsqueeze(-1)
+            g = (length - target).masked_fill(pinned, 0.0)
+            off = -m[1:-1] * (u[:, :-1] * u[:, 1:]).sum(-1)
+            A = torch.diag_embed(both.masked_fill(pinned, 1.0).expand_as(g)) + torch.diag_embed(off, 1) \
+                + torch.diag_embed(off, -1)
+            lam_u = torch.linalg.solve(A, g.unsqueeze(-1)) * u  # (B, C, 3)
+            pad = lam_u.new_zeros(lam_u.shape[0], 1, 3)
+            frame = frame - m[:, None] * (torch.cat([pad, lam_u], 1) - torch.cat([lam_u, pad], 1))
+        return frame
+
     def rollout(self, hist: Tensor, wrench: Tensor, ref: Tensor, anchors: Tensor | None = None,
                 wrench_fn=None) -> Tensor:
         """Free-running rollout of H steps from ``hist`` (B, eta+1, n_tracked, 3) with node forces ``wrench``
@@ -319,6 +359,8 @@ class NodeLSTMSurrogate(nn.Module):
             w = wrench[:, h] if wrench_fn is None else wrench_fn(h, frames[-1])
             pk = self(torch.stack(frames[-W:], 1), w, ref, rest=rest)
             nxt = nxt.index_copy(1, self.idx_modeled, pk)
+            if self.config.chord_projection:
+                nxt = self.project_chords(nxt, ref)
             frames.append(nxt)
             out.append(nxt)
         return torch.stack(out, 1)

@@ -68,8 +68,14 @@ class Surrogate:
         """Next positions (B, K, 3) of the modelled nodes from the history (B, eta+1, n_tracked, 3), the node
         forces (B, K, 3) and the reference (initial) shape (B, n_tracked, 3). A ``rest_anchor`` model's
         output at rest is computed once per reference tensor (again when it is replaced or changed in
-        place)."""
-        return self._step(hist, wrench, ref, self.rest_accel(ref))
+        place). A ``chord_projection`` model then moves them so that every tracked chord keeps its length in
+        ``ref``, the anchors held where the last frame has them (clamped)."""
+        pk = self._step(hist, wrench, ref, self.rest_accel(ref))
+        if self.model.config.chord_projection:
+            idx = self.model.idx_modeled
+            with torch.no_grad():
+                pk = self.model.project_chords(hist[:, -1].index_copy(1, idx, pk), ref)[:, idx]
+        return pk
 
     @torch.no_grad()
     def rest_accel(self, ref: Tensor) -> Tensor | None:

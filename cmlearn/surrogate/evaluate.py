@@ -8,6 +8,10 @@ The trajectory's first frame is the surrogate's reference shape.
 * free-running: the surrogate rolled out from the true history at frame ``start`` on its own
   predictions to the end,
 
+(``node_recursive``, a diagnostic between the two: the node of interest alone runs on its own predictions,
+every other tracked node comes from the recorded trajectory, as each of Paper II's per-node models sees
+its neighbours' measured poses)
+
 and returns per-axis max/mean absolute errors (mm, % of L) and RMSE(t) (II.2).
 """
 from __future__ import annotations
@@ -17,7 +21,7 @@ from torch import Tensor
 
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-__all__ = ["one_step", "free_running", "evaluate", "from_rest", "interest_slots", "THESIS_ERRORS_MM"]
+__all__ = ["one_step", "node_recursive", "free_running", "evaluate", "from_rest", "interest_slots", "THESIS_ERRORS_MM"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
 THESIS_ERRORS_MM = {
@@ -67,6 +71,27 @@ def one_step(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
     out = positions[t + 1].clone().float()
     out[:, model.idx_modeled] = pk
     return out
+
+
+@torch.no_grad()
+def node_recursive(model, positions: Tensor, wrench: Tensor, start: int, slot: int) -> Tensor:
+    """Predictions (T-1-start, 3) of tracked node ``slot`` for frames start+1 .. T-1, each from a history in
+    which that node holds its own earlier predictions (the true ones up to ``start``) and every other
+    tracked node its recorded positions. The node must be modelled. The network's step alone: a model's chord
+    projection, which moves every node at once, is not applied."""
+    hit = (model.idx_modeled == slot).nonzero()
+    if hit.numel() != 1:
+        raise ValueError(f"slot {slot} is not a modelled node of this surrogate")
+    k, W = int(hit), model.config.eta + 1
+    if start < W - 1:
+        raise ValueError(f"start must be >= eta = {W - 1}")
+    own = list(positions[start - W + 1:start + 1, slot].float().unbind(0))
+    ref = positions[:1].float()
+    for t in range(start, positions.shape[0] - 1):
+        hist = positions[t - W + 1:t + 1].float().clone()
+        hist[:, slot] = torch.stack(own[-W:])
+        own.append(model(hist[None], wrench[t].float()[None], ref)[0, k])
+    return torch.stack(own[W:])
 
 
 @torch.no_grad()
