@@ -34,6 +34,10 @@ semicircle's middle node stays on its plane of symmetry), instead of leaking out
 training window also teaches its mirror images. All ``|G|`` images run as one batch ``|G|`` times the
 size through the LSTM and the head.
 
+With ``chord_projection`` each rollout step ends by moving the modelled nodes (anchors fixed) so that every
+chord between consecutive tracked nodes keeps its length in ``ref`` (:meth:`project_chords`): for rods that
+hardly stretch, whose free-running rollouts otherwise drift in length.
+
 The LSTM and the dense layers are shared by all nodes (each node runs its own instance over its own
 history; the node embedding lets the head specialise), so every surrogate step is one fused LSTM
 call over ``batch x nodes`` sequences, and the nodes feed each other's predictions at the next
@@ -310,9 +314,9 @@ class NodeLSTMSurrogate(nn.Module):
         consecutive tracked nodes has its length in ``ref`` (B, n_tracked, 3): ``iters`` Gauss-Newton steps
         ``x -= J^T (J J^T)^-1 g`` for the chord errors ``g`` (``J J^T`` is tridiagonal along the chain), each
         the smallest move that fixes the chords to first order, so the result is the nearest such frame up to
-        terms quadratic in the chord errors. Differentiable. Under mirror symmetries the result is the mean of the
-        projections of every mirror image mapped back, so that float rounding cannot break the symmetry (a motion in
-        a mirror plane or symmetric about it stays so exactly, as the step keeps it)."""
+        terms quadratic in the chord errors. Differentiable. With mirror symmetries it is the mean of the projections
+        of every mirror image, mapped back: the projections of a frame and of its image round differently, and the
+        mean takes no side."""
         G, B = self.mirror_sign.shape[0], frame.shape[0]
         if G == 1:
             return self._project_chords(frame, ref, iters)
@@ -346,7 +350,8 @@ class NodeLSTMSurrogate(nn.Module):
         """Free-running rollout of H steps from ``hist`` (B, eta+1, n_tracked, 3) with node forces ``wrench``
         (B, H, K, 3) and reference shape ``ref`` (B, n_tracked, 3); anchor nodes follow ``anchors``
         (B, H, n_tracked, 3) where given, else stay put. ``wrench_fn(h, frame) -> (B, K, 3)``, where given,
-        replaces ``wrench[:, h]`` by forces computed from the last frame (closed loop). Returns
+        replaces ``wrench[:, h]`` by forces computed from the last frame (closed loop). With ``chord_projection``
+        each new frame is :meth:`project_chords`-ed. Returns
         (B, H, n_tracked, 3)."""
         W = self.config.eta + 1
         if hist.shape[1] != W:
