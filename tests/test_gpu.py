@@ -143,6 +143,31 @@ def test_shipped_surrogate_rollout_on_cuda_equals_cpu():
     assert float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing + 1e-7
 
 
+def test_chord_projected_mirrored_rollout_on_cuda_equals_cpu():
+    """The shipped mirrored model with the chord projection (its batched tridiagonal solves) on both devices."""
+    from cmlearn.models import NodeLSTMSurrogate
+    from cmlearn.surrogate import Surrogate
+
+    engine = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt")
+    task = engine.task
+    model = NodeLSTMSurrogate(replace(engine.model.config, chord_projection=True))
+    model.load_state_dict(engine.model.state_dict())
+    model.eval()
+    scene = replace(task.scene_by_name(task.scene), duration=0.3)
+    W = engine.scene_wrench(scene, 30)[None]
+    ref = scene.initial_configuration()["p"][list(task.tracked)].float()[None]
+    hist = ref[:, None].expand(-1, model.config.eta + 1, -1, -1)
+    with torch.no_grad():
+        cpu = model.rollout(hist, W, ref)
+        gpu = model.to(CUDA).rollout(hist.to(CUDA), W.to(CUDA), ref.to(CUDA))
+    model.cpu()
+    chords = lambda x: (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1)  # noqa: E731
+    swing = float((cpu - ref[:, None]).abs().max())
+    assert gpu.device.type == CUDA.type and swing > 1e-4
+    assert float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
+    assert float((chords(gpu.cpu()) - chords(ref)).abs().max()) < 2e-6
+
+
 def test_train_surrogate_quick_on_gpu(tmp_path):
     pytest.importorskip("lightning")
     sys.path.insert(0, str(ROOT / "scripts"))
