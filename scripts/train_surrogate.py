@@ -52,9 +52,10 @@ class Args:
     hidden: int = opt(48, "LSTM hidden size per modelled node")
     head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM")
     rest_anchor: bool = opt(False, "subtract the model's output at rest (scenes whose initial shape is an equilibrium)")
-    chord_projection: bool = opt(False, "after every rollout step move the modelled nodes (least squares) so that "
-                                        "each chord between consecutive tracked nodes keeps its reference length "
-                                        "(the rod hardly stretches); no weights, so --init-from may add it")
+    chord_projection: bool = opt(False, "after every rollout step move the modelled nodes (to the nearest frame, to "
+                                        "second order) so that each chord between consecutive tracked nodes keeps "
+                                        "its reference length, for rods that hardly stretch; no weights, so "
+                                        "--init-from may add it (no shipped model uses it: docs/surrogates.md)")
     mirror: str = opt("", "axis letters (x, y, z; e.g. zx): make the step equivariant under those reflections "
                           "of the task")
     horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
