@@ -29,7 +29,7 @@ from cmlearn.data.windows import node_wrench
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
-from cmlearn.surrogate.evaluate import free_running, from_rest, interest_slots, node_recursive, one_step
+from cmlearn.surrogate.evaluate import free_running, heldout_case, interest_slots, node_recursive, one_step
 
 
 def chords(p):
@@ -37,19 +37,18 @@ def chords(p):
 
 
 def cases(task, eta: int, duration: float):
-    """(name, tracked positions, node wrench, start) of the printed scene and the held-out scenes."""
-    for name in (task.scene, *task.heldout):
-        scene = task.scene_by_name(name)
-        p, w, _ = scene_rollout(task, replace(scene, duration=duration) if duration else scene)
-        w = node_wrench(w.float(), task.wrench_nodes, task.modeled)
-        if name == task.scene:
-            yield name + " (last 40 %)", p, w, int(round(0.6 * (p.shape[0] - 1))), scene
-        else:
-            yield name, *from_rest(p, w, eta), eta, scene
+    """(name, tracked positions, node wrench, start, scene) of the printed scene and the held-out scenes."""
+    scene = task.base_scene()
+    p, w, _ = scene_rollout(task, replace(scene, duration=duration) if duration else scene)
+    yield task.scene + " (last 40 %)", p, node_wrench(w.float(), task.wrench_nodes, task.modeled), \
+        int(round(0.6 * (p.shape[0] - 1))), scene
+    for name in task.heldout:
+        p, w, _ = heldout_case(task, name, eta, duration or None)
+        yield name, p, w, eta, task.scene_by_name(name)
 
 
 def report(model, task, duration: float) -> list[dict]:
-    rows = []
+    rows, length = [], float(task.base_scene().rod.length)
     for name, p, w, start, scene in cases(task, model.config.eta, duration):
         slot = interest_slots(task, scene)[0]
         ref = p[start + 1:, slot].double()
@@ -57,7 +56,7 @@ def report(model, task, duration: float) -> list[dict]:
         row = {"case": name, "node": task.tracked[slot]}
         for mode, pred in (("one_step", one_step(model, p, w, start)[:, slot]),
                            ("node_alone", node_recursive(model, p, w, start, slot)), ("free_running", free[:, slot])):
-            row[mode] = axis_errors(pred.double(), ref, float(task.scene_by_name(task.scene).rod.length))
+            row[mode] = axis_errors(pred.double(), ref, length)
         true = chords(p[start + 1:].double())
         row["chord_error_mm"] = float((chords(free) - true).abs().max()) * 1e3
         row["lgvi_chord_change_mm"] = float((true - chords(p[:1].double())).abs().max()) * 1e3

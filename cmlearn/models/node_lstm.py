@@ -257,9 +257,8 @@ class NodeLSTMSurrogate(nn.Module):
         M = self._feature_matrix
         if M is None:
             if G > 1:
-                S = self.mirror_sign[:, None]
-                hist = (hist[:, :, self.mirror_perm] * S).movedim(2, 0).flatten(0, 1)
-                ref = (ref[:, self.mirror_perm] * S).movedim(1, 0).flatten(0, 1)
+                hist = (hist[:, :, self.mirror_perm] * self.mirror_sign[:, None]).movedim(2, 0).flatten(0, 1)
+                ref = self._mirror_images(ref)
             return self.features(hist, ref).reshape(G * B * K, W, N_FEATURES)
         x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
         if program:
@@ -267,6 +266,10 @@ class NodeLSTMSurrogate(nn.Module):
         else:
             f = (x @ M).reshape(B, G, -1).transpose(0, 1)
         return f.reshape(G * B * K, W, N_FEATURES)
+
+    def _mirror_images(self, x: Tensor) -> Tensor:
+        """Every symmetry image ``g x`` of frames (B, n_tracked, 3), as (G * B, n_tracked, 3), image-major."""
+        return (x[:, self.mirror_perm] * self.mirror_sign[:, None]).movedim(1, 0).flatten(0, 1)
 
     def _accel(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool) -> Tensor:
         """The head's second difference (B, K, 3) in metres, symmetrised over the mirror group, before the
@@ -320,12 +323,9 @@ class NodeLSTMSurrogate(nn.Module):
         G, B = self.mirror_sign.shape[0], frame.shape[0]
         if G == 1:
             return self._project_chords(frame, ref, iters)
-        S = self.mirror_sign[None, :, None]  # (1, G, 1, 3); each element is its own inverse: g x = S * x[perm]
-        images = (frame[:, self.mirror_perm] * S).movedim(1, 0).flatten(0, 1)
-        refs = (ref[:, self.mirror_perm] * S).movedim(1, 0).flatten(0, 1)
-        out = self._project_chords(images, refs, iters).unflatten(0, (G, B))  # (G, B, n_tracked, 3)
-        back = torch.stack([out[g][:, self.mirror_perm[g]] * self.mirror_sign[g] for g in range(G)])
-        return back.mean(0)
+        out = self._project_chords(self._mirror_images(frame), self._mirror_images(ref), iters).unflatten(0, (G, B))
+        # each element is its own inverse: image g mapped back is sign[g] * out[g][:, perm[g]]
+        return (out.movedim(0, 1)[:, self.mirror_group, self.mirror_perm] * self.mirror_sign[:, None]).mean(1)
 
     def _project_chords(self, frame: Tensor, ref: Tensor, iters: int) -> Tensor:
         target = (ref[:, 1:] - ref[:, :-1]).norm(dim=-1)
