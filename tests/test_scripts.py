@@ -347,6 +347,13 @@ def test_one_step_bias_report_quick(tmp_path):
     # and negative while the pulse is on, zero out of the plane
     assert rows[0]["y"]["d2_mean_mm"] < -0.01 and abs(rows[0]["z"]["d2_mean_abs_mm"]) < 1e-9
     assert all(abs(r[ax]["bias_mm"]) <= r[ax]["mean_abs_err_mm"] + 1e-12 for r in rows for ax in "xyz")
+    # after the cut (frame 18 of 30) the pulse still pushes in the rod's plane; out of it nothing moves
+    after = res["results"][0]["after_cut"]
+    assert res["results"][0]["cut_frame"] == 18
+    assert 0 < after["y"]["d2_rms_mm"] <= after["y"]["d2_max_mm"] and after["z"]["d2_max_mm"] < 1e-9
+    assert after["y"]["err_rms_mm"] <= after["y"]["err_max_mm"]
+    assert after["y"]["d2_max_mm"] >= max(r["y"]["d2_mean_abs_mm"] for r in rows[2:])
+    assert "against a zero second difference" in (tmp_path / "bias.md").read_text()
 
 
 def test_rank_checkpoints_on_fresh_variants(tmp_path):
