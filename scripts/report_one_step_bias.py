@@ -10,8 +10,8 @@ surrogate steps and per axis, at the headline node, the report gives the mean si
 quantity the model's output stands for. A bias comparable to the second difference itself grows as
 h^2 along a free-running rollout, whatever the rollout's stability. Over the frames after the 60 % cut,
 which no model trained on, it also gives the one-step error's RMS and maximum beside the true second
-difference's, which is the error of predicting a zero second difference (``p(t+1) = 2 p(t) - p(t-1)``). Writes the markdown atomically
-and prints one JSON line last.
+difference's, which is the error of predicting a zero second difference (``p(t+1) = 2 p(t) - p(t-1)``).
+Writes the markdown atomically and prints one JSON line last.
 """
 from __future__ import annotations
 
