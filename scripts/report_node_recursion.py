@@ -25,7 +25,7 @@ from dataclasses import replace
 import torch
 
 from cmlearn.data import get_task, scene_rollout
-from cmlearn.data.windows import node_wrench
+from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -41,7 +41,7 @@ def cases(task, eta: int, duration: float):
     scene = task.base_scene()
     p, w, _ = scene_rollout(task, replace(scene, duration=duration) if duration else scene)
     yield task.scene + " (last 40 %)", p, node_wrench(w.float(), task.wrench_nodes, task.modeled), \
-        int(round(0.6 * (p.shape[0] - 1))), scene
+        split_ranges(1, p.shape[0])["test"][0][1], scene
     for name in task.heldout:
         p, w, _ = heldout_case(task, name, eta, duration or None)
         yield name, p, w, eta, task.scene_by_name(name)
