@@ -51,7 +51,9 @@ class Args:
     eta: int = opt(2, "pose-history length each node's LSTM sees (the thesis's eta, >= 2)")
     hidden: int = opt(48, "LSTM hidden size per modelled node")
     head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM")
-    rest_anchor: bool = opt(False, "subtract the model's output at rest (scenes whose initial shape is an equilibrium)")
+    rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
+                                   "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
+                                   "no weights, so --init-from may add it")
     chord_projection: bool = opt(False, "after every rollout step move the modelled nodes (to the nearest frame, to "
                                         "second order) so that each chord between consecutive tracked nodes keeps "
                                         "its reference length, for rods that hardly stretch; no weights, so "
@@ -174,9 +176,11 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         init, meta = load_checkpoint(a.init_from, task=task.name)
     except CheckpointError as e:
         raise SystemExit(f"--init-from: {e}") from None
-    if replace(init.config, chord_projection=a.chord_projection) != model_config(task, a):
+    want = model_config(task, a)
+    if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
+               rest_shape=want.rest_shape) != want:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{model_config(task, a).to_dict()} (pass the same --eta, --hidden, --head-hidden, --rest-anchor, "
+                         f"{want.to_dict()} (pass the same --eta, --hidden, --head-hidden, "
                          "--mirror)")
     return init, meta
 

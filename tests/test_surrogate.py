@@ -216,6 +216,55 @@ def test_rest_anchor_keeps_an_unloaded_rod_at_rest_and_changes_nothing_else(tiny
 
 
 @torch.no_grad()
+def test_loops_share_the_circle_as_equilibrium_and_a_rest_shape_model_holds_it(tmp_path):
+    """Simulation I's loops all come to rest as the circle their rod closes: the LGVI keeps it still, and a
+    model anchored there (``rest_shape``) keeps it still exactly, from any reference shape."""
+    from dataclasses import replace
+    from cmlearn.data.generate import scene_rollout
+    task = get_task("ellipse")
+    scene = task.base_scene()
+    circle = task.equilibrium(scene)
+    N, l = scene.rod.N, float(scene.rod.lengths[0])
+    radius = -float(circle[N // 2, 1]) / 2  # the node opposite the clamp is a diameter down
+    chords = (circle[1:] - circle[:-1]).norm(dim=-1)
+    assert float(chords.max() - chords.min()) < 1e-12 and abs(float(chords.mean()) / l - 1) < 3e-3  # equal angles
+    assert torch.allclose((circle - torch.tensor([0.0, -radius, 0.0], dtype=circle.dtype)).norm(dim=-1),
+                          torch.full((N + 1,), radius, dtype=circle.dtype), atol=1e-9)
+    assert float(circle[:, 2].abs().max()) == 0.0 and float(circle[0].norm()) < 1e-12
+    from physics.shapes import ellipse_loop
+    p0, frames, _ = ellipse_loop(N, 1.0, 1.0, element_length=l)
+    assert torch.equal(p0, circle)
+    pos, _, _ = scene_rollout(task, scene, p0=p0, R0=frames, duration=0.5)
+    assert float((pos - pos[:1]).abs().max()) < 1e-9  # at rest: an equilibrium
+    moving, _, _ = scene_rollout(task, scene, duration=0.5)
+    assert float((moving - moving[:1]).abs().max()) > 1e-3  # the printed loop swings
+    cfg = task.model_config(hidden=8, rest_anchor=True, mirror="x")
+    assert cfg.rest_shape is not None and len(cfg.rest_shape) == len(task.tracked)
+    assert task.model_config(hidden=8).rest_shape is None  # only anchored models carry it
+    with pytest.raises(ValueError, match="rest_shape"):
+        replace(cfg, rest_anchor=False)
+    with pytest.raises(ValueError, match="rest_shape"):
+        replace(cfg, rest_shape=cfg.rest_shape[1:])
+    torch.manual_seed(0)
+    free = live_head(NodeLSTMSurrogate(replace(cfg, rest_anchor=False, rest_shape=None)))
+    anchored = NodeLSTMSurrogate(cfg).eval()
+    anchored.load_state_dict(free.state_dict())
+    ref = scene.initial_configuration()["p"][list(task.tracked)].float()[None]  # the printed ellipse
+    still = torch.tensor(cfg.rest_shape)[None]
+    hist = still[:, None].expand(-1, cfg.eta + 1, -1, -1)
+    w = torch.zeros(1, 20, len(task.modeled), 3)
+    held = anchored.rollout(hist, w, ref)
+    assert torch.equal(held, still[:, None].expand_as(held))
+    drift = free.rollout(hist, w, ref)
+    assert float((drift - still[:, None]).abs().max()) > 1e-5
+    engine = Surrogate(anchored, {"task": "ellipse"})
+    assert torch.equal(engine.step(hist, w[:, 0], ref), still[:, anchored.idx_modeled])
+    save_checkpoint(tmp_path / "loop.pt", anchored, {"task": "ellipse"})
+    back, _ = load_checkpoint(tmp_path / "loop.pt")
+    assert back.config == cfg and torch.equal(back.rollout(hist, w, ref), held)
+
+
+@torch.no_grad()
 def test_mirror_makes_the_step_equivariant_and_keeps_planar_motion_planar(tiny):
     from dataclasses import replace
     task = get_task("semicircle")

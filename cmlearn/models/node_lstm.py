@@ -19,7 +19,11 @@ With ``rest_anchor`` the head's output at rest (the history all at the reference
 subtracted from it, so an unloaded rod at its reference shape stays there exactly: for scenes whose
 reference shape is an equilibrium (Simulation III's clamped semicircle), where a learned constant
 second difference would otherwise make the free-running rollout drift from rest as h^2. It costs
-one extra step's evaluation per rollout (:meth:`rest_accel`, passed to every step as ``rest``).
+one extra step's evaluation per rollout (:meth:`rest_accel`, passed to every step as ``rest``). Where the
+reference shape is not an equilibrium but the scene has one known shape that is (Simulation I's loops,
+released from ellipses, all have the same clamps and come to rest as the one circle they close), the
+config's ``rest_shape`` gives it (the tracked nodes' positions): the history all at that shape, no force,
+is what is subtracted, and the rod at rest there stays there exactly.
 
 With ``reflections`` the step is made exactly equivariant under a group of mirror symmetries. Each
 generator ``(axis, nodes)`` is the reflection that negates a world axis (0, 1 or 2) and, where
@@ -67,6 +71,8 @@ class NodeLSTMConfig:
     embedding: int = 8
     head_hidden: int = 64
     rest_anchor: bool = False      # subtract the output at rest: the reference shape is an equilibrium
+    # ... or, where given, this shape (n_tracked rows of x, y, z; the anchors where the data hold them)
+    rest_shape: tuple[tuple[float, float, float], ...] | None = None
     chord_projection: bool = False  # after each rollout step, give every tracked chord its reference length
     # generators of the mirror symmetries: (world axis negated, tracked index of each tracked node's mirror
     # image or None for itself), one per axis
@@ -93,6 +99,10 @@ class NodeLSTMConfig:
                                  "modelled nodes to modelled nodes")
         if any(a[b[i]] != b[a[i]] for a in perms for b in perms for i in range(self.n_tracked)):
             raise ValueError("reflections: the node maps must commute (the reflections generate a group)")
+        if self.rest_shape is not None and (not self.rest_anchor or len(self.rest_shape) != self.n_tracked
+                                            or any(len(r) != 3 for r in self.rest_shape)):
+            raise ValueError(f"rest_shape must be n_tracked = {self.n_tracked} rows of 3 coordinates, given with "
+                             "rest_anchor")
         for name in ("modeled", "left", "right"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
@@ -130,6 +140,8 @@ class NodeLSTMSurrogate(nn.Module):
         movable = torch.zeros(c.n_tracked)
         movable[list(c.modeled)] = 1.0
         self.register_buffer("movable", movable, persistent=False)  # (n_tracked,): 1 modelled, 0 anchor
+        self.register_buffer("rest_frame", None if c.rest_shape is None else torch.tensor(c.rest_shape),
+                             persistent=False)  # (n_tracked, 3) from the config
         free_end = torch.tensor([float(r == m) for r, m in zip(c.right, c.modeled)])
         self.register_buffer("has_right", 1.0 - free_end[:, None], persistent=False)
         self.register_buffer("length_scale", torch.ones(()))
@@ -293,10 +305,11 @@ class NodeLSTMSurrogate(nn.Module):
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
         """The head's output (B, K, 3) at rest: every history frame the reference shape (B, n_tracked, 3),
-        no force. What ``rest_anchor`` subtracts; constant along a rollout, so compute it once and pass it
-        to :meth:`forward` as ``rest``."""
+        or the config's ``rest_shape`` where given, no force. What ``rest_anchor`` subtracts; constant along
+        a rollout, so compute it once and pass it to :meth:`forward` as ``rest``."""
         W, K = self.config.eta + 1, self.idx_modeled.numel()
-        hist = ref[:, None].expand(-1, W, -1, -1)
+        still = ref if self.rest_frame is None else self.rest_frame.to(ref.dtype).expand_as(ref)
+        hist = still[:, None].expand(-1, W, -1, -1)
         return self._accel(hist, ref.new_zeros(ref.shape[0], K, 3), ref, program)
 
     def forward(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool = False,

@@ -60,6 +60,8 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     if "mirror_axis" in cfg:  # a one-reflection checkpoint from before the symmetry groups (2026-11-25)
         axis, nodes = cfg.pop("mirror_axis"), cfg.pop("mirror_nodes", None)
         cfg["reflections"] = () if axis is None else ((axis, nodes),)
+    if cfg.get("rest_shape") is not None:
+        cfg["rest_shape"] = tuple(tuple(float(x) for x in r) for r in cfg["rest_shape"])
     cfg["reflections"] = tuple((int(a), None if m is None else tuple(m)) for a, m in cfg.get("reflections", ()))
     try:
         model = cls[0](cls[1](**cfg))
