@@ -168,6 +168,33 @@ def test_chord_projected_mirrored_rollout_on_cuda_equals_cpu():
     assert float((chords(gpu.cpu()) - chords(ref)).abs().max()) < 2e-6
 
 
+def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():
+    """Simulation I's model rest-anchored at the circle (``rest_shape``, a buffer from the config): the circle
+    at rest stays put exactly on the GPU too, and a swing from the printed ellipse matches the CPU's."""
+    from cmlearn.models import NodeLSTMSurrogate
+    from cmlearn.surrogate import Surrogate
+
+    engine = Surrogate.load(ROOT / "checkpoints" / "ellipse.pt")
+    task = engine.task
+    rest = task.model_config(rest_anchor=True).rest_shape
+    model = NodeLSTMSurrogate(replace(engine.model.config, rest_anchor=True, rest_shape=rest))
+    model.load_state_dict(engine.model.state_dict())
+    model.eval()
+    W = model.config.eta + 1
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
+    still = torch.tensor(rest)[None]
+    wrench = torch.zeros(1, 40, len(task.modeled), 3)
+    with torch.no_grad():
+        cpu = model.rollout(ref[:, None].expand(-1, W, -1, -1), wrench, ref)
+        model.to(CUDA)
+        held = model.rollout(still[:, None].expand(-1, W, -1, -1).to(CUDA), wrench.to(CUDA), ref.to(CUDA))
+        gpu = model.rollout(ref[:, None].expand(-1, W, -1, -1).to(CUDA), wrench.to(CUDA), ref.to(CUDA))
+    model.cpu()
+    assert held.device.type == CUDA.type and torch.equal(held.cpu(), still[:, None].expand_as(held.cpu()))
+    swing = float((cpu - ref[:, None]).abs().max())
+    assert swing > 1e-4 and float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
+
+
 def test_train_surrogate_quick_on_gpu(tmp_path):
     pytest.importorskip("lightning")
     sys.path.insert(0, str(ROOT / "scripts"))
