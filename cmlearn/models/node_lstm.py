@@ -22,8 +22,9 @@ second difference would otherwise make the free-running rollout drift from rest 
 one extra step's evaluation per rollout (:meth:`rest_accel`, passed to every step as ``rest``). Where the
 reference shape is not an equilibrium but the scene has one known shape that is (Simulation I's loops,
 released from ellipses, all have the same clamps and come to rest as the one circle they close), the
-config's ``rest_shape`` gives it (the tracked nodes' positions): the history all at that shape, no force,
-is what is subtracted, and the rod at rest there stays there exactly.
+config's ``rest_shape`` gives it (the tracked nodes' positions in the data's world frame, so such a model is
+tied to that placement of the clamps): the history all at that shape, no force, is what is subtracted, and
+the rod at rest there stays there exactly.
 
 With ``reflections`` the step is made exactly equivariant under a group of mirror symmetries. Each
 generator ``(axis, nodes)`` is the reflection that negates a world axis (0, 1 or 2) and, where
