@@ -419,3 +419,29 @@ def test_report_node_recursion_splits_the_free_running_error(tmp_path):
     assert "semicircle (last 40 %) (node 51) |" in table and "semicircle_heldout (node 51) |" in table
     script_fails([str(ROOT / "scripts/report_node_recursion.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt")],
                  tmp_path, "has its own evaluation")
+
+
+def test_report_loop_swing_against_the_lgvi(tmp_path):
+    """Node 30's swing on the loops from rest: the LGVI's figures are the physics' own, the anchored loop model
+    holds the circle and the unanchored one does not, a window past the run is refused."""
+    from dataclasses import replace
+
+    from cmlearn.data import get_task, scene_rollout
+    res = run_script([str(ROOT / "scripts/report_loop_swing.py"), "--variants", "2", "--duration", "2",
+                      "--after", "0.5", "--out", "ls.md"], tmp_path)
+    drift = res["circle_drift_mm"]
+    assert drift["ellipse_anchored.pt"] == 0.0 and drift["ellipse.pt"] > 1.0
+    assert [r["loop"] for r in res["loops"]] == ["printed, h/w 3.00", "training, h/w 1.41",
+                                                 "held out (ellipse_horizontal)"]
+    task = get_task("ellipse")
+    p, _, _ = scene_rollout(task, replace(task.base_scene(), duration=2.0))
+    y = p[51:, list(task.tracked).index(29), 1].float().double() * 1e3  # after 0.5 s, from frame 1
+    lgvi = res["loops"][0]["lgvi"]
+    assert lgvi["min_mm"] == pytest.approx(float(y.min()), abs=1e-4)
+    assert lgvi["mean_mm"] == pytest.approx(float(y.mean()), abs=1e-4) and lgvi["max_mm"] - lgvi["min_mm"] > 50
+    for r in res["loops"]:
+        for name in ("ellipse.pt", "ellipse_anchored.pt"):
+            assert r[name]["err_max_mm"] >= abs(r[name]["mean_mm"] - r["lgvi"]["mean_mm"]) - 1e-6
+    assert "| printed, h/w 3.00 |" in (tmp_path / "ls.md").read_text()
+    script_fails([str(ROOT / "scripts/report_loop_swing.py"), "--variants", "2", "--duration", "2", "--after", "5"],
+                 tmp_path, "leaves nothing")
