@@ -112,7 +112,8 @@ def main(argv=None) -> dict:
     res = {"circle_drift_mm": {n: circle_drift(m, task, n_steps) for n, m in models.items()},
            "loops": [{"loop": lab, **r} for lab, r in zip(labels + [f"held out ({task.heldout[0]})"], rows)]}
     names = list(models)
-    lines = [f"Node 30 of Simulation I, y, free-running from rest for {n_steps * task.delta:g} s (min, max, mean mm after "
+    lines = ["# Simulation I: how the loop models swing (`python scripts/report_loop_swing.py`)", "",
+             f"Node 30 of Simulation I, y, free-running from rest for {n_steps * task.delta:g} s (min, max, mean mm after "
              f"{a.after:g} s; the largest error). From the circle at rest node 30 moves (y range, mm): "
              + ", ".join(f"{n} {d:.1f}" for n, d in res["circle_drift_mm"].items()) + "; the LGVI 0.", "",
              "| loop | LGVI | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
