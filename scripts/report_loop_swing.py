@@ -28,7 +28,7 @@ import torch
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
-from cmlearn.surrogate.evaluate import from_rest, heldout_case
+from cmlearn.surrogate.evaluate import heldout_case
 
 ROOT = Path(__file__).resolve().parents[1]
 NODE = 29  # node 30 of 59
@@ -59,14 +59,16 @@ def circle_drift(model, task, steps: int) -> float:
 
 
 @torch.no_grad()
-def loop_rows(models: dict, loops: torch.Tensor, eta: int, delta: float, after: float, slot: int) -> list[dict]:
-    """LGVI and each model's swing on loops (V, T, n_tracked, 3), all from rest and unloaded, as one batch."""
-    pos = torch.stack([from_rest(p.float(), p.new_zeros(0), eta)[0] for p in loops])
-    truth = pos[:, eta + 1:, slot, 1]
+def loop_rows(models: dict, loops: torch.Tensor, delta: float, after: float, slot: int) -> list[dict]:
+    """LGVI and each model's swing on loops (V, T, n_tracked, 3), all from rest (each model's history: copies
+    of the first frame) and unloaded, as one batch."""
+    pos = loops.float()
+    truth = pos[:, 1:, slot, 1]
     rows = [{"lgvi": swing(t.double(), delta, after)} for t in truth]
     for name, m in models.items():
-        W = torch.zeros(pos.shape[0], pos.shape[1] - eta - 1, m.idx_modeled.numel(), 3)
-        y = m.rollout(pos[:, :eta + 1], W, pos[:, 0], anchors=pos[:, eta + 1:])[:, :, slot, 1]
+        hist = pos[:, :1].expand(-1, m.config.eta + 1, -1, -1)
+        W = torch.zeros(pos.shape[0], pos.shape[1] - 1, m.idx_modeled.numel(), 3)
+        y = m.rollout(hist, W, pos[:, 0], anchors=pos[:, 1:])[:, :, slot, 1]
         for r, yv, tv in zip(rows, y, truth):
             r[name] = swing(yv.double(), delta, after) | {"err_max_mm": float((yv - tv).abs().max()) * 1e3}
     return rows
@@ -98,7 +100,6 @@ def main(argv=None) -> dict:
     for path in a.checkpoints:
         m, _ = load_checkpoint(path, task="ellipse")
         models[Path(path).name] = m.eval()
-    eta = max(m.config.eta for m in models.values())
     slot = list(task.tracked).index(NODE)
     data = cached_dataset(task, a.variants, 0, a.data_dir, a.duration or None)
     n_steps = data["positions"].shape[1] - 1
@@ -107,8 +108,8 @@ def main(argv=None) -> dict:
     aspects = data["meta"]["variants"]["aspect_h_over_w"]
     labels = [f"{'printed' if v == 0 else 'training'}, h/w {aspects[v]:.2f}" for v in range(a.variants)]
     held, _, _ = heldout_case(task, task.heldout[0], 0, a.duration or None)
-    rows = loop_rows(models, data["positions"], eta, task.delta, a.after, slot)
-    rows += loop_rows(models, held[None], eta, task.delta, a.after, slot)
+    rows = loop_rows(models, data["positions"], task.delta, a.after, slot)
+    rows += loop_rows(models, held[None], task.delta, a.after, slot)
     res = {"circle_drift_mm": {n: circle_drift(m, task, n_steps) for n, m in models.items()},
            "loops": [{"loop": lab, **r} for lab, r in zip(labels + [f"held out ({task.heldout[0]})"], rows)]}
     names = list(models)
