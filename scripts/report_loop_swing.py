@@ -4,8 +4,8 @@
         [--threads 1] [--out docs/loop_swing.md]
 
 Every Simulation I loop rests as the one circle its rod closes (``SurrogateTask.equilibrium``), so a loop
-released from an ellipse swings about it. For each checkpoint (default: the shipped ``ellipse.pt`` and
-``ellipse_anchored.pt``) this reports:
+released from an ellipse swings about it. For each checkpoint (default: the shipped ``ellipse.pt``) this
+reports:
 
 * from the circle at rest: how far node 30 moves in y over the run (the LGVI: not at all), i.e. whether
   the model knows the equilibrium;
@@ -81,8 +81,7 @@ def fmt(s: dict) -> str:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("checkpoints", nargs="*", default=[str(ROOT / "checkpoints" / f) for f in
-                                                       ("ellipse.pt", "ellipse_anchored.pt")])
+    ap.add_argument("checkpoints", nargs="*", default=[str(ROOT / "checkpoints" / "ellipse.pt")])
     ap.add_argument("--variants", type=int, default=32, help="training loops (the dataset of seed 0 with this many)")
     ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's 50 s)")
     ap.add_argument("--after", type=float, default=10.0, help="seconds left out before the range and mean")

@@ -169,17 +169,14 @@ def test_chord_projected_mirrored_rollout_on_cuda_equals_cpu():
 
 
 def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():
-    """Simulation I's model rest-anchored at the circle (``rest_shape``, a buffer from the config): the circle
-    at rest stays put exactly on the GPU too, and a swing from the printed ellipse matches the CPU's."""
-    from cmlearn.models import NodeLSTMSurrogate
+    """The shipped Simulation I model, rest-anchored at the circle (``rest_shape``, a buffer from the config):
+    the circle at rest stays put exactly on the GPU too, and a swing from the printed ellipse matches the CPU's."""
     from cmlearn.surrogate import Surrogate
 
     engine = Surrogate.load(ROOT / "checkpoints" / "ellipse.pt")
-    task = engine.task
+    task, model = engine.task, engine.model
     rest = task.model_config(rest_anchor=True).rest_shape
-    model = NodeLSTMSurrogate(replace(engine.model.config, rest_anchor=True, rest_shape=rest))
-    model.load_state_dict(engine.model.state_dict())
-    model.eval()
+    assert model.config.rest_anchor and model.config.rest_shape == rest
     W = model.config.eta + 1
     ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
     still = torch.tensor(rest)[None]

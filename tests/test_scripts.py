@@ -422,15 +422,24 @@ def test_report_node_recursion_splits_the_free_running_error(tmp_path):
 
 
 def test_report_loop_swing_against_the_lgvi(tmp_path):
-    """Node 30's swing on the loops from rest: the LGVI's figures are the physics' own, the anchored loop model
-    holds the circle and the unanchored one does not, a window past the run is refused."""
+    """Node 30's swing on the loops from rest: the LGVI's figures are the physics' own, the shipped (anchored)
+    loop model holds the circle and the same weights without the anchor do not, a window past the run is
+    refused."""
     from dataclasses import replace
 
     from cmlearn.data import get_task, scene_rollout
-    res = run_script([str(ROOT / "scripts/report_loop_swing.py"), "--variants", "2", "--duration", "2",
-                      "--after", "0.5", "--out", "ls.md"], tmp_path)
+    from cmlearn.models import NodeLSTMSurrogate
+    from cmlearn.surrogate import load_checkpoint, save_checkpoint
+    shipped = ROOT / "checkpoints" / "ellipse.pt"
+    model, meta = load_checkpoint(shipped)
+    assert model.config.rest_anchor
+    free = NodeLSTMSurrogate(replace(model.config, rest_anchor=False, rest_shape=None))
+    free.load_state_dict(model.state_dict())
+    save_checkpoint(tmp_path / "unanchored.pt", free, meta)
+    res = run_script([str(ROOT / "scripts/report_loop_swing.py"), str(shipped), str(tmp_path / "unanchored.pt"),
+                      "--variants", "2", "--duration", "2", "--after", "0.5", "--out", "ls.md"], tmp_path)
     drift = res["circle_drift_mm"]
-    assert drift["ellipse_anchored.pt"] == 0.0 and drift["ellipse.pt"] > 1.0
+    assert drift["ellipse.pt"] == 0.0 and drift["unanchored.pt"] > 1.0
     assert [r["loop"] for r in res["loops"]] == ["printed, h/w 3.00", "training, h/w 1.41",
                                                  "held out (ellipse_horizontal)"]
     task = get_task("ellipse")
@@ -440,7 +449,7 @@ def test_report_loop_swing_against_the_lgvi(tmp_path):
     assert lgvi["min_mm"] == pytest.approx(float(y.min()), abs=1e-4)
     assert lgvi["mean_mm"] == pytest.approx(float(y.mean()), abs=1e-4) and lgvi["max_mm"] - lgvi["min_mm"] > 50
     for r in res["loops"]:
-        for name in ("ellipse.pt", "ellipse_anchored.pt"):
+        for name in ("ellipse.pt", "unanchored.pt"):
             assert r[name]["err_max_mm"] >= abs(r[name]["mean_mm"] - r["lgvi"]["mean_mm"]) - 1e-6
     assert "| printed, h/w 3.00 |" in (tmp_path / "ls.md").read_text()
     script_fails([str(ROOT / "scripts/report_loop_swing.py"), "--variants", "2", "--duration", "2", "--after", "5"],
