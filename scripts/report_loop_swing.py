@@ -15,7 +15,7 @@ reports:
   upwards (the swing's phase), beside the LGVI's.
 
 Prints markdown and ends with one JSON line. Figures in ``docs/surrogates.md`` ("Simulation I anchored at its
-equilibrium") come from it.
+equilibrium", "Windows as long as the loop's swing") come from it.
 """
 from __future__ import annotations
 
