@@ -216,7 +216,7 @@ def test_quick_training_turns_the_greedy_action_to_the_goal(tmp_path, east):
     res = train_agent(AgentTrainConfig(out=str(tmp_path / "run"), seed=seed, **cfg), maps=maps, log=lambda s: None)
     assert res.frames >= 2_048 and res.updates > 0
     trained = IQNAgent.load(res.agent_path)
-    # measured (2048 frames, seeds 1-3 east): 0.0 -> 1.0 toward the goal, success 0.0 -> 1.0
+    # measured at 2,048 frames, both directions, three processes: 0.0 -> 1.0 toward the goal and in success
     assert toward_goal(env, trained) >= 0.9, seed
     assert success_rate(env, trained, 10) >= 0.8, seed
 
