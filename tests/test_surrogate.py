@@ -64,6 +64,22 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
         load_dataset(tmp_path / "tampered.pt", task="ellipse")
 
 
+def test_cached_dataset_is_regenerated_when_its_task_changed_step(tmp_path, capsys):
+    """A cached file sampled at another surrogate step (or for another node set) is not served to the task."""
+    from dataclasses import replace
+
+    from cmlearn.data import cached_dataset
+    task = get_task("semicircle")
+    first = cached_dataset(task, 2, 0, tmp_path, duration=0.04)
+    assert first["positions"].shape[1] == 5 and first["meta"]["delta"] == task.delta
+    assert cached_dataset(task, 2, 0, tmp_path, duration=0.04)["meta"]["data_hash"] == first["meta"]["data_hash"]
+    capsys.readouterr()
+    coarse = cached_dataset(replace(task, delta=2 * task.delta), 2, 0, tmp_path, duration=0.04)
+    assert "sampled with delta = 0.01" in capsys.readouterr().out
+    assert coarse["positions"].shape[1] == 3 and coarse["meta"]["delta"] == 2 * task.delta
+    assert torch.equal(coarse["positions"], first["positions"][:, ::2])  # the same LGVI run, every other frame
+
+
 def test_windows_and_splits(tiny):
     meta = tiny["meta"]
     wr = node_wrench(tiny["wrench"], meta["wrench_nodes"], meta["modeled"])

@@ -135,6 +135,17 @@ def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
     assert float((lateral * axial).sum(-1).abs().max()) < 1e-9
 
 
+def test_heldout_reference_cache_follows_the_task_step(tmp_path):
+    """The cached LGVI reference of a held-out profile is recomputed for a task sampled at another step."""
+    from cmlearn.surrogate.magnetic import _heldout_reference
+    name = TASK.heldout[0]
+    fine = _heldout_reference(TASK, name, 0.04, tmp_path)[0]
+    assert fine.shape == (3, 11, 3)
+    assert torch.equal(_heldout_reference(TASK, name, 0.04, tmp_path)[0], fine)  # served from the cache
+    coarse = _heldout_reference(replace(TASK, delta=2 * TASK.delta), name, 0.04, tmp_path)[0]
+    assert coarse.shape == (2, 11, 3) and torch.equal(coarse, fine[::2])
+
+
 def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tmp_path):
     """Closed-loop training (train_surrogate --closed-loop): the linearised field reproduces the stored wrench
     on the data and the exact one to second order off it; the training rollout with it follows the evaluation's

@@ -193,7 +193,8 @@ def _heldout_reference(task, name: str, duration: float | None, data_dir: str | 
     path = Path(data_dir) / f"{task.name}_{name}_{d:g}s_ref.pt"
     if path.exists():
         blob = torch.load(path, weights_only=True)
-        if data_hash(blob["points"], blob["wrench"]) == blob["hash"]:
+        fits = blob["points"].shape[:2] == (int(round(d / task.delta)) + 1, len(task.tracked))  # step, node set
+        if fits and data_hash(blob["points"], blob["wrench"]) == blob["hash"]:
             return blob["points"], blob["wrench"], blob["lgvi_wall_s"]
     pts, W, wall = rollout(task, scene, duration=d)
     pts, W = pts.float(), W.float()
