@@ -124,13 +124,14 @@ def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
     path = tmp_path / "mag.pt"
     meta = generate_dataset("magnetic_rod", 2, seed=39, out=path, duration=0.2)  # seed 39: moves at 0.1 s
     d = load_dataset(path, task="magnetic_rod")
-    assert d["positions"].shape == (2, 11, 11, 3) and d["wrench"].shape == (2, 10, 4, 3)
+    n = int(round(0.2 / TASK.delta))  # intervals
+    assert d["positions"].shape == (2, n + 1, 11, 3) and d["wrench"].shape == (2, n, 4, 3)
     assert meta["tracked"] == [0, 2, 4, 5, 7, 9, 10, 11, 12, 13, 14] and meta["wrench_nodes"] == [4, 5, 9, 10]
-    assert torch.equal(d["wrench"][0], torch.zeros(10, 4, 3))  # the printed profile holds zero current for 0.5 s
+    assert torch.equal(d["wrench"][0], torch.zeros(n, 4, 3))  # the printed profile holds zero current for 0.5 s
     assert float(d["wrench"][1].abs().max()) > 0
     centre = 0.5 * (d["positions"][:, :, 2] + d["positions"][:, :, 3])
     lateral, axial = d["positions"][:, :, 7] - centre, d["positions"][:, :, 8] - centre
-    assert torch.allclose(lateral.norm(dim=-1), torch.full((2, 11), 0.02), atol=1e-6)  # 20 mm lever arms
+    assert torch.allclose(lateral.norm(dim=-1), torch.full((2, n + 1), 0.02), atol=1e-6)  # 20 mm lever arms
     assert torch.allclose(axial[:, 0], torch.tensor([0.0, 0.0, -0.02]).expand(2, 3), atol=1e-6)  # along E3 = -z
     assert float((lateral * axial).sum(-1).abs().max()) < 1e-9
 
@@ -140,10 +141,10 @@ def test_heldout_reference_cache_follows_the_task_step(tmp_path):
     from cmlearn.surrogate.magnetic import _heldout_reference
     name = TASK.heldout[0]
     fine = _heldout_reference(TASK, name, 0.04, tmp_path)[0]
-    assert fine.shape == (3, 11, 3)
+    assert fine.shape == (int(round(0.04 / TASK.delta)) + 1, 11, 3)
     assert torch.equal(_heldout_reference(TASK, name, 0.04, tmp_path)[0], fine)  # served from the cache
     coarse = _heldout_reference(replace(TASK, delta=2 * TASK.delta), name, 0.04, tmp_path)[0]
-    assert coarse.shape == (2, 11, 3) and torch.equal(coarse, fine[::2])
+    assert torch.equal(coarse, fine[::2])
 
 
 def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tmp_path):
@@ -159,7 +160,7 @@ def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tm
     generate_dataset("magnetic_rod", 2, seed=39, out=path, duration=0.4)  # seed 39: moves from 0.1 s
     d = load_dataset(path, task="magnetic_rod")
     inputs = closed_loop_inputs(TASK, d)
-    assert inputs.shape == (2, 20, 2, 15) and float(inputs[1, -1, :, 3:6].norm(dim=-1).min()) > 1e-4  # tesla
+    assert inputs.shape == (2, int(round(0.4 / TASK.delta)), 2, 15) and float(inputs[1, -1, :, 3:6].norm(dim=-1).min()) > 1e-4  # tesla
     rod, pts = TASK.base_scene().rod, d["positions"][1, -2].double()
     I = torch.tensor([2.0, -1.0, 0.5, -2.0, 1.0, 1.5], dtype=torch.float64)
     field = linearised_field(field_samples(TASK, rod, eMNS(), pts, I))
@@ -176,17 +177,18 @@ def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tm
     model.set_scales([d["positions"][v] for v in range(2)], node_wrench(d["wrench"], TASK.wrench_nodes, TASK.modeled),
                      rod.length)
     wr = node_wrench(d["wrench"], TASK.wrench_nodes, TASK.modeled)
-    batch = RolloutWindows(d["positions"], wr, [(1, 0, 20)], eta=2, horizon=8, inputs=inputs)[-1]  # frames 10-20
+    end, H = int(round(0.4 / TASK.delta)), int(round(0.16 / TASK.delta))  # the last window: H steps up to 0.4 s
+    batch = RolloutWindows(d["positions"], wr, [(1, 0, end)], eta=2, horizon=H, inputs=inputs)[-1]
     assert len(batch) == 5
     batch = [b[None] for b in batch]
-    module = SurrogateModule(model, horizon=8, wrench_fn=closed_loop_wrench(TASK))
-    open_loop = SurrogateModule(model, horizon=8)
+    module = SurrogateModule(model, horizon=H, wrench_fn=closed_loop_wrench(TASK))
+    open_loop = SurrogateModule(model, horizon=H)
     with torch.no_grad():
-        _, pred = module.rollout_loss(batch, 8)
-        _, pred_open = open_loop.rollout_loss(batch, 8)
+        _, pred = module.rollout_loss(batch, H)
+        _, pred_open = open_loop.rollout_loss(batch, H)
         scene = replace(TASK.base_scene(), duration=0.4)
         currents = TASK.variants(scene, 2, 39)["currents"]
-        ref = closed_loop(model, TASK, rod, eMNS(), batch[0], lambda t: currents(t)[1], 12, 8, batch[3])
+        ref = closed_loop(model, TASK, rod, eMNS(), batch[0], lambda t: currents(t)[1], end - H, H, batch[3])
     gap_open = float((pred_open - ref).abs().max())
     assert gap_open > 2e-7  # the untrained model's own frames give another wrench than the data's (float32: 1e-8 m)
     assert float((pred - ref).abs().max()) < 0.05 * gap_open
