@@ -160,7 +160,8 @@ def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tm
     generate_dataset("magnetic_rod", 2, seed=39, out=path, duration=0.4)  # seed 39: moves from 0.1 s
     d = load_dataset(path, task="magnetic_rod")
     inputs = closed_loop_inputs(TASK, d)
-    assert inputs.shape == (2, int(round(0.4 / TASK.delta)), 2, 15) and float(inputs[1, -1, :, 3:6].norm(dim=-1).min()) > 1e-4  # tesla
+    end, H = int(round(0.4 / TASK.delta)), int(round(0.16 / TASK.delta))  # the last window below: H steps up to 0.4 s
+    assert inputs.shape == (2, end, 2, 15) and float(inputs[1, -1, :, 3:6].norm(dim=-1).min()) > 1e-4  # tesla
     rod, pts = TASK.base_scene().rod, d["positions"][1, -2].double()
     I = torch.tensor([2.0, -1.0, 0.5, -2.0, 1.0, 1.5], dtype=torch.float64)
     field = linearised_field(field_samples(TASK, rod, eMNS(), pts, I))
@@ -177,7 +178,6 @@ def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tm
     model.set_scales([d["positions"][v] for v in range(2)], node_wrench(d["wrench"], TASK.wrench_nodes, TASK.modeled),
                      rod.length)
     wr = node_wrench(d["wrench"], TASK.wrench_nodes, TASK.modeled)
-    end, H = int(round(0.4 / TASK.delta)), int(round(0.16 / TASK.delta))  # the last window: H steps up to 0.4 s
     batch = RolloutWindows(d["positions"], wr, [(1, 0, end)], eta=2, horizon=H, inputs=inputs)[-1]
     assert len(batch) == 5
     batch = [b[None] for b in batch]
