@@ -134,6 +134,14 @@ def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
     assert torch.allclose(lateral.norm(dim=-1), torch.full((2, n + 1), 0.02), atol=1e-6)  # 20 mm lever arms
     assert torch.allclose(axial[:, 0], torch.tensor([0.0, 0.0, -0.02]).expand(2, 3), atol=1e-6)  # along E3 = -z
     assert float((lateral * axial).sum(-1).abs().max()) < 1e-9
+    # the wrench of many frames in chunks of frames (by_frames, for memory) is the wrench of all at once
+    from cmlearn.data.magnetic import by_frames
+    rod, pts = TASK.base_scene().rod, d["positions"].double()
+    I = torch.linspace(-3.0, 3.0, 6, dtype=torch.float64) * torch.linspace(0.2, 1.0, n + 1, dtype=torch.float64)[:, None]
+    whole = wrench_inputs(TASK, rod, eMNS(), pts, I.expand(2, -1, -1))
+    assert float(whole.abs().max()) > 1e-6
+    assert torch.equal(by_frames(lambda p, i: wrench_inputs(TASK, rod, eMNS(), p, i), pts, I.expand(2, -1, -1), chunk=4),
+                       whole)
 
 
 def test_heldout_reference_cache_follows_the_task_step(tmp_path):

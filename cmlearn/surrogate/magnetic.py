@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from cmlearn.data.magnetic import (currents_series, equivalent_forces, field_samples, linearised_field, magnet_frames,
-                                   rollout, simulate, tracked_points, wrench_inputs)
+from cmlearn.data.magnetic import (by_frames, currents_series, equivalent_forces, field_samples, linearised_field,
+                                   magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
@@ -76,8 +76,7 @@ def closed_loop_inputs(task, data: dict) -> Tensor:
     currents = task.variants(scene, meta["n_variants"], meta["seed"])["currents"]
     pos = data["positions"][:, :-1].double()
     I = currents_series(currents, pos.shape[1], task.delta).movedim(0, -2)  # (V, T-1, C)
-    # one variant at a time: the coil field of every frame at once takes gigabytes (8 GB for 32 x 1200 frames)
-    samples = torch.stack([field_samples(task, scene.rod, scene.loads.field.emns, p, i) for p, i in zip(pos, I)])
+    samples = by_frames(lambda p, i: field_samples(task, scene.rod, scene.loads.field.emns, p, i), pos, I)
     W = equivalent_forces(task, scene.rod, pos, linearised_field(samples))
     scale = float(data["wrench"].abs().max())
     if not float((W - data["wrench"].double()).abs().max()) <= 1e-4 * scale:
