@@ -43,8 +43,12 @@ def orientation_rows(meta: dict) -> list[str]:
             for key, name in (("rnn", "thesis: RNN"), ("cosserat", "thesis: Cosserat")):
                 th = THESIS_ORIENTATION[(magnet, key)]
                 out.append(f"| {label} | {magnet} | {name} | " + " | ".join(f"{a:.2f}, {b:.2f}" for a, b in th) + " |")
-            for key, name in _MODELS:
-                e = m["orientation_deg"][key][magnet]
+            models = [(name, m["orientation_deg"][key][magnet]) for key, name in _MODELS]
+            if "free_running_nudged" in m:  # the spread over nudged starts (cmlearn.surrogate.magnetic)
+                n = m["free_running_nudged"]
+                models.insert(1, (f"ours: LSTM, free-running, {n['n']} starts nudged {n['sigma_m']:g} m (mean; "
+                                  "largest max)", n[magnet]))
+            for name, e in models:
                 out.append(f"| {label} | {magnet} | {name} | " + " | ".join(
                     f"{e[ax]['max_deg']:.2f}, {e[ax]['mean_deg']:.2f}" for ax in "xyz") + " |")
     return out

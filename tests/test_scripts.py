@@ -96,6 +96,7 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
     assert meta["val_data_hash"] and meta["val_data_hash"] != meta["data_hash"]  # closed-loop inputs of fresh variants
     # the time budget ends the run after its first epoch of the two --quick allows, then it evaluates as usual
     assert meta["epochs_run"] == 1 and "orientation_deg" in meta["metrics"]["seen_last40"]
+    assert all(len(m["free_running_nudged"]["sum_mean_deg"]) == 16 for m in meta["metrics"].values())
     script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--closed-loop"], tmp_path,
                  "--closed-loop: task 'semicircle'")
     assert not list((tmp_path / "data").glob("semicircle*"))  # refused before generating any data
@@ -302,6 +303,21 @@ def test_surrogate_report(tmp_path):
     assert again == text + "\n" + NOTES + "\nA study.\n"
 
 
+def test_surrogate_report_shows_the_nudged_free_running_spread_where_recorded():
+    rows = load_script("report_surrogates").orientation_rows
+    meta = json.loads((ROOT / "checkpoints/magnetic_rod.json").read_text())
+    case = meta["metrics"]["magnetic_rod_heldout"]
+    plain = rows(meta)
+    assert not any("nudged" in r for r in plain)
+    stats = {m: {ax: {"max_deg": 30.0 + i, "mean_deg": 1.0 + i / 10} for i, ax in enumerate("xyz")}
+             for m in ("distal", "proximal")}
+    case["free_running_nudged"] = {"n": 16, "sigma_m": 1e-8, "sum_mean_deg": [20.0] * 16, **stats}
+    nudged = [r for r in rows(meta) if "nudged" in r]
+    assert nudged == [f"| magnetic_rod_heldout | {m} | ours: LSTM, free-running, 16 starts nudged 1e-08 m (mean; largest "
+                      "max) | 30.00, 1.00 | 31.00, 1.10 | 32.00, 1.20 |" for m in ("distal", "proximal")]
+    assert len(rows(meta)) == len(plain) + 2
+
+
 def test_rollout_sensitivity_report_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/report_rollout_sensitivity.py"), "--quick", "--tasks", "semicircle",
                       "--out", "sens.md"], tmp_path)
@@ -335,6 +351,22 @@ def test_load_amplitude_report_quick(tmp_path):
     assert err["pct_of_range"][2] == pytest.approx(100 * err["max_mm"][2] / pushed["range_mm"][2])
     script_fails([str(ROOT / "scripts/report_load_amplitude.py"), "--checkpoints", str(ROOT / "checkpoints/semicircle.pt"),
                   str(ROOT / "checkpoints/square_tracking.pt")], tmp_path, "--checkpoints")
+
+
+def test_free_running_spread_report_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_free_running_spread.py"), "--checkpoints",
+                      str(ROOT / "checkpoints/magnetic_rod.pt"), "--duration", "0.3", "--starts", "2",
+                      "--lgvi-eps", "1e-6", "--data-dir", str(tmp_path), "--out", "spread.md"], tmp_path)
+    assert "| magnetic_rod_heldout | magnetic_rod.pt |" in (tmp_path / "spread.md").read_text()
+    assert [r["case"] for r in res["rows"]] == ["magnetic_rod (last 40 %)", "magnetic_rod_heldout"]
+    for row in res["rows"]:
+        m = row["models"]["magnetic_rod.pt"]
+        assert m["single"] > 0 and len(m["nudged"]["1e-08"]["sum_mean_deg"]) == 2
+        # no snap-through within 0.3 s: nudges of 1e-8 m and currents changed by 1e-6 change (almost) nothing
+        assert max(abs(s - m["single"]) for s in m["nudged"]["1e-08"]["sum_mean_deg"]) < 1e-3
+        assert row["lgvi"]["runs"]["1e-06"]["max_deg"] < 1e-3
+    script_fails([str(ROOT / "scripts/report_free_running_spread.py"), "--checkpoints",
+                  str(ROOT / "checkpoints/semicircle.pt")], tmp_path, "--checkpoints")
 
 
 def test_one_step_bias_report_quick(tmp_path):

@@ -144,15 +144,45 @@ def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
                        whole)
 
 
-def test_heldout_reference_cache_follows_the_task_step(tmp_path):
+def test_reference_run_cache_follows_the_task_step(tmp_path):
     """The cached LGVI reference of a held-out profile is recomputed for a task sampled at another step."""
-    from cmlearn.surrogate.magnetic import _heldout_reference
+    from cmlearn.surrogate.magnetic import reference_run
     name = TASK.heldout[0]
-    fine = _heldout_reference(TASK, name, 0.04, tmp_path)[0]
+    fine = reference_run(TASK, name, 0.04, tmp_path)[0]
     assert fine.shape == (int(round(0.04 / TASK.delta)) + 1, 11, 3)
-    assert torch.equal(_heldout_reference(TASK, name, 0.04, tmp_path)[0], fine)  # served from the cache
-    coarse = _heldout_reference(replace(TASK, delta=2 * TASK.delta), name, 0.04, tmp_path)[0]
+    assert torch.equal(reference_run(TASK, name, 0.04, tmp_path)[0], fine)  # served from the cache
+    coarse = reference_run(replace(TASK, delta=2 * TASK.delta), name, 0.04, tmp_path)[0]
     assert torch.equal(coarse, fine[::2])
+
+
+def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recorded_run(tmp_path):
+    """nudged_free_running: one unnudged start is exactly the free-running run the metrics record; unnudged
+    copies in a batch agree with each other; nudged ones differ, here (no snap-through in 0.3 s) by little."""
+    from cmlearn.data.windows import node_wrench
+    from cmlearn.surrogate import load_checkpoint
+    from cmlearn.surrogate.evaluate import from_rest
+    from cmlearn.surrogate.magnetic import _case, nudged_free_running, reference_run
+    model, _ = load_checkpoint(ROOT / "checkpoints" / "magnetic_rod.pt", task="magnetic_rod")
+    name, eta = TASK.heldout[0], model.config.eta
+    scene = replace(TASK.scene_by_name(name), duration=0.3)
+    p, W, _ = reference_run(TASK, name, 0.3, tmp_path)
+    ph, Wh = from_rest(p, node_wrench(W, TASK.wrench_nodes, TASK.modeled), eta)
+    case = _case(model, TASK, scene, ph, Wh, eta, pad=eta, cosserat=False, nudged=3)
+    free = case["orientation_deg"]["free_running"]
+    recorded = sum(free[m][ax]["mean_deg"] for m in ("distal", "proximal") for ax in "xyz")
+    assert recorded > 0.01
+    one = nudged_free_running(model, TASK, scene, ph, eta, eta, n=1, sigma=0.0)
+    assert one["sum_mean_deg"] == [pytest.approx(recorded, rel=1e-12)]
+    assert one["distal"]["y"]["mean_deg"] == pytest.approx(free["distal"]["y"]["mean_deg"], rel=1e-12)
+    same = nudged_free_running(model, TASK, scene, ph, eta, eta, n=3, sigma=0.0)["sum_mean_deg"]
+    assert same[0] == same[1] == same[2]
+    spread = case["free_running_nudged"]
+    assert spread["n"] == 3 and spread["sigma_m"] == 1e-8 and len(set(spread["sum_mean_deg"])) == 3
+    assert max(abs(s - recorded) for s in spread["sum_mean_deg"]) < 1e-3
+    with pytest.raises(ValueError, match="sigma"):
+        nudged_free_running(model, TASK, scene, ph, eta, eta, sigma=-1.0)
+    with pytest.raises(ValueError, match="n must"):
+        nudged_free_running(model, TASK, scene, ph, eta, eta, n=0)
 
 
 def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tmp_path):

@@ -10,7 +10,10 @@ Per axis we report the maximum and the mean of the absolute value over the sampl
 
 Free-running means closed loop: each step's input wrench (the magnets' torque and force) is computed
 from the surrogate's own last predicted frame and the coil currents, so the surrogate needs nothing
-from the physics but the currents. One-step predictions use the true history and wrench.
+from the physics but the currents. One-step predictions use the true history and wrench. Where a rollout
+passes the rod's snap-throughs (folds of its equilibrium), when the surrogate's rod snaps is decided by
+differences as small as float rounding, so one free-running run is one draw: :func:`nudged_free_running`
+gives the spread over starts nudged by ~1e-8 m (``scripts/report_free_running_spread.py``).
 
 The Cosserat baseline (:func:`cosserat_orientations`) solves the static rod of
 :func:`physics.scenes_cosserat.paper2_magnetic_rod` in the same eMNS at each sample time with that
@@ -34,7 +37,7 @@ from cmlearn.eval.metrics import axis_errors, rmse_t
 from .evaluate import from_rest, interest_slots, one_step
 
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
-           "closed_loop_wrench", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene"]
+           "closed_loop_wrench", "nudged_free_running", "reference_run", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 
@@ -64,6 +67,34 @@ def closed_loop(model, task, rod, emns, hist: Tensor, currents, k0: int, n_steps
         I = torch.as_tensor(currents(t), dtype=torch.float64)
         return node_wrench(wrench_inputs(task, rod, emns, frame.double(), I).float(), task.wrench_nodes, task.modeled)
     return model.rollout(hist.float(), torch.zeros(hist.shape[0], n_steps, 0), ref, wrench_fn=wrench_fn)
+
+
+@torch.no_grad()
+def nudged_free_running(model, task, scene, pos: Tensor, start: int, pad: int = 0, n: int = 16,
+                        sigma: float = 1e-8, seed: int = 0) -> dict:
+    """Closed-loop free-running orientation errors from ``n`` copies of the true history at frame ``start`` of
+    ``pos`` (T, n_tracked, 3; its first ``pad`` frames before t = 0), each modelled point nudged by N(0, sigma^2)
+    m (float32 rounding of these coordinates is ~1e-8 m), run as one batch. Returns, per start, the sum of the
+    six mean absolute errors (deg), and per magnet and axis the mean over starts of the mean error and the
+    largest maximum: the spread of a free-running figure whose rollout passes the rod's snap-throughs."""
+    if not (isinstance(n, int) and n >= 1):
+        raise ValueError(f"n must be a positive number of starts, got {n!r}")
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"sigma must be a finite distance >= 0 (m), got {sigma!r}")
+    W = model.config.eta + 1
+    hist = pos[None, start - W + 1:start + 1].float().repeat(n, 1, 1, 1)
+    g = torch.Generator().manual_seed(seed)
+    idx = model.idx_modeled
+    hist[:, :, idx] += sigma * torch.randn(hist[:, :, idx].shape, generator=g)
+    rod = scene.rod
+    pred = closed_loop(model, task, rod, scene.loads.field.emns, hist, scene.loads.field.currents, start - pad,
+                       pos.shape[0] - 1 - start, pos[:1].float().expand(n, -1, -1))
+    _, R_ref, _ = magnet_frames(task, rod, pos[start + 1:].double())
+    err = orientation_errors(magnet_frames(task, rod, pred.double())[1], R_ref).abs()  # (n, T, K, 3)
+    mean, mx = err.mean(1), err.amax(1)  # (n, K, 3)
+    return {"n": n, "sigma_m": sigma, "sum_mean_deg": mean.sum((1, 2)).tolist(),
+            **{name: {ax: {"mean_deg": float(mean[:, k, i].mean()), "max_deg": float(mx[:, k, i].max())}
+                      for i, ax in enumerate("xyz")} for k, name in enumerate(MAGNETS)}}
 
 
 def closed_loop_inputs(task, data: dict) -> Tensor:
@@ -163,9 +194,10 @@ def cached_cosserat(task, scene, times, data_dir: str | Path | None):
 
 
 def _case(model, task, scene, pos: Tensor, wr: Tensor, start: int, pad: int = 0, cosserat: bool = True,
-          data_dir: str | Path | None = None) -> dict:
+          data_dir: str | Path | None = None, nudged: int = 16) -> dict:
     """Both surrogate modes (and the Cosserat model) on frames start+1 .. T-1 of ``pos`` (T, n_tracked, 3),
-    whose first ``pad`` frames are copies of the rest frame before t = 0 (frame k is at (k - pad) delta)."""
+    whose first ``pad`` frames are copies of the rest frame before t = 0 (frame k is at (k - pad) delta); with
+    ``nudged`` > 0 also the free-running spread over that many nudged starts (:func:`nudged_free_running`)."""
     rod, emns, cur = scene.rod, scene.loads.field.emns, scene.loads.field.currents
     W = model.config.eta + 1
     ref = pos[start + 1:].double()
@@ -182,11 +214,14 @@ def _case(model, task, scene, pos: Tensor, wr: Tensor, start: int, pad: int = 0,
         R_cos, wall = cached_cosserat(task, scene, times, data_dir)
         out["orientation_deg"]["cosserat"] = orientation_stats(orientation_errors(R_cos, R_ref))
         out["cosserat_wall_s"] = wall
+    if nudged:
+        out["free_running_nudged"] = nudged_free_running(model, task, scene, pos, start, pad, n=nudged)
     return out
 
 
-def _heldout_reference(task, name: str, duration: float | None, data_dir: str | Path):
-    """LGVI reference of a held-out scene (cached in ``data_dir``, it takes minutes)."""
+def reference_run(task, name: str, duration: float | None, data_dir: str | Path):
+    """LGVI run of the task's scene ``name`` (the printed or a held-out one): tracked points, wrench inputs and wall
+    time, cached in ``data_dir`` (it takes minutes)."""
     from cmlearn.data.generate import data_hash
     scene = task.scene_by_name(name)
     d = duration or scene.duration
@@ -208,7 +243,8 @@ def _heldout_reference(task, name: str, duration: float | None, data_dir: str | 
 
 def evaluate(model, task, data: dict, args) -> dict:
     """Metrics stored with a checkpoint: the printed scene's last 40 % (true history at the cut) and the
-    held-out scenes from rest, surrogate one-step and free-running (closed loop) and the Cosserat model."""
+    held-out scenes from rest, surrogate one-step and free-running (closed loop), the free-running spread over
+    16 nudged starts (``free_running_nudged``) and the Cosserat model."""
     meta = data["meta"]
     scene = task.base_scene()
     duration = getattr(args, "duration", 0.0) or None
@@ -222,7 +258,7 @@ def evaluate(model, task, data: dict, args) -> dict:
     eta = model.config.eta
     for name in task.heldout:
         held = task.scene_by_name(name)
-        p, W, wall = _heldout_reference(task, name, duration, getattr(args, "data_dir", "data"))
+        p, W, wall = reference_run(task, name, duration, getattr(args, "data_dir", "data"))
         Wk = node_wrench(W, task.wrench_nodes, task.modeled)
         p_hist, W_hist = from_rest(p, Wk, eta)
         metrics[name] = _case(model, task, replace(held, duration=duration or held.duration), p_hist, W_hist, eta,
