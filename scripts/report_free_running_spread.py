@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from cmlearn.data.magnetic import magnet_frames, rollout
-from cmlearn.data.windows import node_wrench
+from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.evaluate import from_rest
@@ -37,20 +37,19 @@ def six_sum(stats: dict) -> float:
 
 
 def cases(task, duration: float | None, data_dir: str):
-    """(label, scene, LGVI points, node wrench, whether it is the printed profile) per profile of ``task``."""
+    """(label, scene, LGVI points, wrench inputs, whether it is the printed profile) per profile of ``task``."""
     for name in (task.scene, *task.heldout):
         scene = task.scene_by_name(name)
         pts, W, _ = reference_run(task, name, duration, data_dir)
         label = f"{name} (last 40 %)" if name == task.scene else name
-        yield label, replace(scene, duration=duration or scene.duration), pts, node_wrench(
-            W, task.wrench_nodes, task.modeled), name == task.scene
+        yield label, replace(scene, duration=duration or scene.duration), pts, W, name == task.scene
 
 
 def start_of(pts, W, eta: int, printed: bool):
-    """(points, start, pad): the printed profile from its 60 % cut, a held-out one from rest (``eta`` rest frames
-    before t = 0)."""
+    """(points, start, pad): the printed profile from its 60 % cut (:func:`split_ranges`), a held-out one from
+    rest (``eta`` rest frames before t = 0)."""
     if printed:
-        return pts, int(round(0.6 * (pts.shape[0] - 1))), 0
+        return pts, split_ranges(1, pts.shape[0])["test"][0][1], 0
     return from_rest(pts, W, eta)[0], eta, eta
 
 
