@@ -99,7 +99,8 @@ class Args:
     init_from: str = opt("", "a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)")
     accelerator: str = opt("cpu", "Lightning's accelerator; off the CPU, ops without a deterministic kernel warn",
                            ["cpu", "gpu", "auto"])
-    ddp: bool = opt(False, "multi-process data parallel (Lightning's DDP strategy) over --devices")
+    ddp: bool = opt(False, "multi-process data parallel (Lightning's DDP strategy) over --devices; --batch-size "
+                          "and --train-batches are per process, and only the first process evaluates and writes")
     devices: int = opt(1, "processes / devices for --ddp")
     quick: bool = opt(False, "smoke-test budget: a short scene, at most 3 variants, two epochs")
     duration: float = opt(0.0, "simulated seconds per trajectory (0: the scene's own)")
@@ -301,6 +302,8 @@ def main(argv=None):
                           ).validate(module, datamodule=dm, verbose=False)[0]
         init_from["val"] = {k: float(start[k]) for k in SELECT_METRICS.values() if k in start}
     trainer.fit(module, datamodule=dm, ckpt_path=a.resume or None)
+    if trainer.global_rank != 0:  # --ddp: the other processes only trained; rank 0 evaluates and writes
+        return None
     if init_from is not None and ckpt_cb.best_model_score is not None:
         best = float(ckpt_cb.best_model_score)
         init_from["selected_beats_start"] = bool(best < init_from["val"][monitor])
@@ -321,8 +324,8 @@ def main(argv=None):
             "data_hash": data["meta"]["data_hash"], "data_seed": a.seed,
             "val_data_hash": val_data["meta"]["data_hash"] if val_data else None, "n_variants": a.variants,
             "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
-            "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
-            "data_wall_s": t_data, "init_from": init_from}
+            "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "world_size": trainer.world_size,
+            "train_wall_s": t_train, "data_wall_s": t_data, "init_from": init_from}
     from cmlearn.surrogate import Surrogate, SurrogateDivergence
     from cmlearn.surrogate.evaluate import short_check
     # 50 surrogate steps: short enough that even an unstable rollout is reproducible bit for bit

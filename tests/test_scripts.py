@@ -172,6 +172,30 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                      "--mirror must name task 'semicircle'")
 
 
+def test_train_surrogate_ddp_trains_on_two_processes_and_its_run_resumes_in_one(tmp_path):
+    """--ddp: two CPU processes train one model, select the same epoch from synchronised metrics, and the
+    first alone evaluates and writes it; --resume continues that run's last Lightning checkpoint."""
+    base = [str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1"]
+    res = run_script([*base, "--ddp", "--devices", "2", "--epochs", "1", "--out", "ddp.pt", "--log-dir", "logs"],
+                     tmp_path)
+    meta = json.loads((tmp_path / "ddp.json").read_text())
+    assert res["checkpoint"].endswith("ddp.pt") and meta["args"]["ddp"]
+    assert meta["world_size"] == 2 and meta["epochs_run"] == 1
+    rows = [r for r in csv.DictReader(next((tmp_path / "logs").rglob("metrics.csv")).open()) if r.get("val_loss")]
+    assert len(rows) == 1  # one validation record an epoch, not one per process
+    best = list((tmp_path / "logs").rglob("epoch=0-*.ckpt"))
+    assert len(best) == 1  # both processes named the selected checkpoint alike
+    selected = torch.load(best[0], map_location="cpu", weights_only=False)["state_dict"]
+    written = torch.load(tmp_path / "ddp.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(selected[f"model.{k}"], v) for k, v in written.items())
+    last = next((tmp_path / "logs").rglob("last.ckpt"))
+    run_script([*base, "--resume", str(last), "--out", "res.pt", "--log-dir", "logs_res"], tmp_path)
+    resumed = json.loads((tmp_path / "res.json").read_text())
+    assert resumed["world_size"] == 1 and resumed["epochs_run"] == 2
+    epochs = {r["epoch"] for r in csv.DictReader(next((tmp_path / "logs_res").rglob("metrics.csv")).open())}
+    assert epochs == {"1"}  # it went on from the second epoch instead of training the first again
+
+
 def test_train_surrogate_validates_on_the_printed_tail(tmp_path):
     """--variants 1 --val-tail: the thesis's one-trajectory protocol; the logged val_rollout_mm is the
     free-running error over the printed scene's tail before the cut, not over the test range after it."""

@@ -172,10 +172,11 @@ class SurrogateModule(L.LightningModule):
             loss = loss + self.one_step_weight * self.one_step_loss(batch, self.current_horizon())
         if not torch.isfinite(loss):  # a rollout that ran away: skip the batch rather than poison the weights
             self.skipped_batches += 1
-            self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False)
+            self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False, reduce_fx="max",
+                     sync_dist=True)
             return None
-        self.log("train_loss", loss, prog_bar=True, on_epoch=True, on_step=False)
-        self.log("horizon", float(self.current_horizon()), on_epoch=True, on_step=False)
+        self.log("train_loss", loss, prog_bar=True, on_epoch=True, on_step=False, sync_dist=True)
+        self.log("horizon", float(self.current_horizon()), on_epoch=True, on_step=False, sync_dist=True)
         return loss
 
     def validation_step(self, batch, batch_idx):
@@ -183,8 +184,10 @@ class SurrogateModule(L.LightningModule):
         future = batch[1]
         idx = self.model.idx_modeled
         mm = (pred[:, :, idx] - future[:, :self.horizon, idx]).abs().amax() * 1e3
-        self.log("val_loss", loss, prog_bar=True)
-        self.log("val_max_err_mm", mm, reduce_fx="max")
+        # sync_dist: under DDP each process validates its share of the windows; every process must select the
+        # same epoch (and name its checkpoint file alike)
+        self.log("val_loss", loss, prog_bar=True, sync_dist=True)
+        self.log("val_max_err_mm", mm, reduce_fx="max", sync_dist=True)
 
     def on_before_optimizer_step(self, optimizer):
         """A finite loss can still overflow in the backward pass: drop such a step's gradients (the
@@ -226,4 +229,4 @@ class RolloutSelection(L.Callback):
     def on_validation_epoch_end(self, trainer, pl_module):
         if trainer.sanity_checking:
             return
-        pl_module.log("val_rollout_mm", self.score(pl_module), prog_bar=True)
+        pl_module.log("val_rollout_mm", self.score(pl_module), prog_bar=True, sync_dist=True)  # alike on every process
