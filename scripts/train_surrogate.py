@@ -154,6 +154,8 @@ def parse(argv=None) -> Args:
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
+    if a.devices < 1 or (a.devices > 1 and not a.ddp):
+        ap.error(f"--devices must be 1, or more with --ddp (one training process each), got {a.devices}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
         a.variants, a.epochs, a.warmup_epochs, a.horizon = min(a.variants, 3), min(a.epochs, 2), 1, min(a.horizon, 4)
         a.duration = a.duration or 0.3

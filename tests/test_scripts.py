@@ -159,6 +159,8 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude"),
+                       (["--devices", "2"], "--devices must be 1, or more with --ddp"),
+                       (["--ddp", "--devices", "0"], "--devices must be 1, or more with --ddp"),
                        (["--task", "magnetic_rod", "--time-reversal"],
                         "--time-reversal: task 'magnetic_rod' is not time-reversible"),
                        (["--task", "magnetic_rod", "--chord-projection"],
