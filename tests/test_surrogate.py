@@ -597,6 +597,35 @@ def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
 
 
+def test_a_runaway_rollout_on_one_ddp_process_is_skipped_by_all(tiny):
+    """Under DDP a batch that runs away on one process only: both processes drop the step (none waits for
+    the other's gradients, which a skipped backward pass would leave it doing), so no weight moves."""
+    L = pytest.importorskip("lightning")
+    from datetime import timedelta
+
+    from lightning.pytorch.strategies import DDPStrategy
+    dm, model, module = tiny_training(tiny, 1)
+    batch = next(iter(dm._loader("train", shuffle=False)))
+    hist = batch[0][:4].clone()
+    hist[0, -1] = 1e38  # window 0 goes to the first process (the distributed sampler deals in turn)
+    before = [p.detach().clone() for p in model.parameters()]
+    trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu", devices=2, num_sanity_val_steps=0,
+                        strategy=DDPStrategy(start_method="spawn", timeout=timedelta(seconds=120)),
+                        limit_val_batches=0, gradient_clip_val=1.0)
+    poisoned = torch.utils.data.TensorDataset(hist, *(t[:4] for t in batch[1:]))
+    trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(poisoned, batch_size=2))
+    # the first process's weights come back to this one: unchanged, as on the other process
+    assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
+    # the same batch clean trains on both processes: the weights move
+    clean = torch.utils.data.TensorDataset(*(t[:4] for t in batch))
+    L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+              enable_model_summary=False, accelerator="cpu", devices=2, num_sanity_val_steps=0,
+              strategy=DDPStrategy(start_method="spawn", timeout=timedelta(seconds=120)), limit_val_batches=0,
+              gradient_clip_val=1.0).fit(module, train_dataloaders=torch.utils.data.DataLoader(clean, batch_size=2))
+    assert not all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
+
+
 def test_checkpoint_round_trip_and_clear_errors(tmp_path):
     task = get_task("semicircle")
     model = tiny_model(task)

@@ -170,10 +170,14 @@ class SurrogateModule(L.LightningModule):
         loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon(), self.step_weighting)
         if self.one_step_weight > 0:
             loss = loss + self.one_step_weight * self.one_step_loss(batch, self.current_horizon())
-        if not torch.isfinite(loss):  # a rollout that ran away: skip the batch rather than poison the weights
-            self.skipped_batches += 1
-            self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False, reduce_fx="max",
-                     sync_dist=True)
+        # a rollout that ran away (on any process, under DDP): skip the batch rather than poison the weights
+        if not self.trainer.strategy.reduce_boolean_decision(bool(torch.isfinite(loss)), all=True):
+            if self.trainer.world_size > 1:
+                # DDP all-reduces the gradients, so every process must run the backward pass (returning None
+                # would leave the others waiting): NaN gradients make all of them drop the step together,
+                # and none logs this batch's loss (every logged metric is synchronised)
+                return loss * float("nan")
+            self._skip()
             return None
         self.log("train_loss", loss, prog_bar=True, on_epoch=True, on_step=False, sync_dist=True)
         self.log("horizon", float(self.current_horizon()), on_epoch=True, on_step=False, sync_dist=True)
@@ -189,12 +193,18 @@ class SurrogateModule(L.LightningModule):
         self.log("val_loss", loss, prog_bar=True, sync_dist=True)
         self.log("val_max_err_mm", mm, reduce_fx="max", sync_dist=True)
 
+    def _skip(self):
+        """Count a skipped batch (under DDP every process skips the same ones)."""
+        self.skipped_batches += 1
+        self.log("skipped_batches", float(self.skipped_batches), on_epoch=True, on_step=False, reduce_fx="max",
+                 sync_dist=True)
+
     def on_before_optimizer_step(self, optimizer):
         """A finite loss can still overflow in the backward pass: drop such a step's gradients (the
         optimiser then leaves the weights as they are) instead of letting clipping spread the NaN."""
         grads = [p.grad for p in self.model.parameters() if p.grad is not None]
         if grads and not all(torch.isfinite(g).all() for g in grads):
-            self.skipped_batches += 1
+            self._skip()
             for p in self.model.parameters():
                 p.grad = None
 
