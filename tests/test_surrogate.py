@@ -605,24 +605,21 @@ def test_a_runaway_rollout_on_one_ddp_process_is_skipped_by_all(tiny):
 
     from lightning.pytorch.strategies import DDPStrategy
     dm, model, module = tiny_training(tiny, 1)
-    batch = next(iter(dm._loader("train", shuffle=False)))
-    hist = batch[0][:4].clone()
-    hist[0, -1] = 1e38  # window 0 goes to the first process (the distributed sampler deals in turn)
+    batch = [t[:4] for t in next(iter(dm._loader("train", shuffle=False)))]
     before = [p.detach().clone() for p in model.parameters()]
-    trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, accelerator="cpu", devices=2, num_sanity_val_steps=0,
-                        strategy=DDPStrategy(start_method="spawn", timeout=timedelta(seconds=120)),
-                        limit_val_batches=0, gradient_clip_val=1.0)
-    poisoned = torch.utils.data.TensorDataset(hist, *(t[:4] for t in batch[1:]))
-    trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(poisoned, batch_size=2))
-    # the first process's weights come back to this one: unchanged, as on the other process
+
+    def fit_on_two_processes(*tensors):  # the first process's weights come back to this one
+        L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                  enable_model_summary=False, accelerator="cpu", devices=2, num_sanity_val_steps=0,
+                  strategy=DDPStrategy(start_method="spawn", timeout=timedelta(seconds=120)), limit_val_batches=0,
+                  gradient_clip_val=1.0).fit(module, train_dataloaders=torch.utils.data.DataLoader(
+                      torch.utils.data.TensorDataset(*tensors), batch_size=2))
+
+    hist = batch[0].clone()
+    hist[0, -1] = 1e38  # window 0 goes to the first process (the distributed sampler deals in turn)
+    fit_on_two_processes(hist, *batch[1:])
     assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
-    # the same batch clean trains on both processes: the weights move
-    clean = torch.utils.data.TensorDataset(*(t[:4] for t in batch))
-    L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-              enable_model_summary=False, accelerator="cpu", devices=2, num_sanity_val_steps=0,
-              strategy=DDPStrategy(start_method="spawn", timeout=timedelta(seconds=120)), limit_val_batches=0,
-              gradient_clip_val=1.0).fit(module, train_dataloaders=torch.utils.data.DataLoader(clean, batch_size=2))
+    fit_on_two_processes(*batch)  # the same windows, clean: the weights move
     assert not all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
 
 
