@@ -67,9 +67,10 @@ def test_magnet_convergence_report_quick(tmp_path):
     assert errs["1728"] < 1e-4 < errs["8"]
 
 
-def test_bench_surrogate_quick(tmp_path):
-    res = run_script([str(ROOT / "scripts/bench/surrogate.py"), "--quick", "--task", "square_tracking",
-                      "--checkpoint", str(ROOT / "checkpoints/square_tracking.pt")], tmp_path)
+@pytest.mark.parametrize("task", ["square_tracking", "magnetic_rod"])  # a plain task and one with its own module
+def test_bench_surrogate_quick(tmp_path, task):
+    res = run_script([str(ROOT / "scripts/bench/surrogate.py"), "--quick", "--task", task,
+                      "--checkpoint", str(ROOT / f"checkpoints/{task}.pt")], tmp_path)
     for key in ("surrogate_step_hz", "lgvi_step_hz", "speedup_per_simulated_second", "quick_rollout_max_err_mm"):
         assert key in res
     assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1

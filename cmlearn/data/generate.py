@@ -56,8 +56,15 @@ def _midpoint_wrench(force, task: SurrogateTask, times, n_variants: int):
 
 def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", duration=None):
     """Run the LGVI on ``scene`` (or a batch of initial shapes / a batched force) and return the
-    tracked-node positions (..., T, n_tracked, 3) every ``delta``, the wrench inputs and the wall time."""
+    tracked-node positions (..., T, n_tracked, 3) every ``delta``, the wrench inputs and the wall time. A task
+    with a module of its own (the magnetic rod: tracked points rebuilt from the magnets' frames, wrench inputs
+    from the coil field) runs the scene as that module does, from the scene's own shape and loads."""
     from dataclasses import replace
+    if task.custom:
+        if p0 is not None or R0 is not None or force != "scene":
+            raise ValueError(f"scene_rollout: task {task.name!r} runs its scenes from their own shape and loads "
+                             "(p0, R0 and force are not accepted)")
+        return task.hook("rollout")(task, scene, duration=duration)
     if force != "scene":
         scene = replace(scene, loads=replace(scene.loads, force=force))
     sim = scene.make_integrator()
