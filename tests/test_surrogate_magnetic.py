@@ -155,6 +155,19 @@ def test_reference_run_cache_follows_the_task_step(tmp_path):
     assert torch.equal(coarse, fine[::2])
 
 
+def test_scene_rollout_runs_the_rod_as_its_module_does():
+    """The generic scene_rollout (the benchmark's) runs the magnetic rod through its own module: the markers and
+    the coil wrench, not node positions; it refuses the other shapes or forces only plain tasks take."""
+    from cmlearn.data import scene_rollout
+    scene = TASK.base_scene()
+    pts, W, _ = scene_rollout(TASK, scene, duration=0.04)
+    ref, W_ref, _ = rollout(TASK, scene, duration=0.04)
+    assert pts.shape == (int(round(0.04 / TASK.delta)) + 1, len(TASK.tracked), 3)
+    assert torch.equal(pts, ref) and torch.equal(W, W_ref)
+    with pytest.raises(ValueError, match="p0, R0 and force are not accepted"):
+        scene_rollout(TASK, scene, p0=scene.initial_configuration()["p"], duration=0.04)
+
+
 def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recorded_run(tmp_path):
     """nudged_free_running: one unnudged start is exactly the free-running run the metrics record; unnudged
     copies in a batch agree with each other; nudged ones differ, here (no snap-through in 0.3 s) by little."""
