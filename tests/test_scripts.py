@@ -31,6 +31,23 @@ def script_fails(args, tmp_path, msg: str) -> None:
     assert bad.returncode != 0 and msg in bad.stderr, bad.stderr[-500:]
 
 
+def load_script(name):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(f"script_{name}", ROOT / f"scripts/{name}.py")
+    mod = sys.modules[f"script_{name}"] = importlib.util.module_from_spec(spec)  # dataclasses look it up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def parse_fails(script: str, argv: list[str], msg: str, capsys) -> None:
+    """The script's argument parser (``parse(argv)``, run in this process: no interpreter start per case)
+    exits with a usage error whose message contains ``msg``."""
+    with pytest.raises(SystemExit) as e:
+        load_script(script).parse(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and msg in err, err[-500:]
+
+
 def test_bench_lgvi_quick(tmp_path):
     pytest.importorskip("elastica")
     res = run_script([str(ROOT / "scripts/bench/lgvi.py"), "--quick", "--no-compile", "--window", "0.05",
@@ -103,7 +120,7 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
     assert not list((tmp_path / "data").glob("semicircle*"))  # refused before generating any data
 
 
-def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path):
+def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path, capsys):
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
                 "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs", "--rest-anchor",
                 "--mirror", "zx", "--head-hidden", "24", "--time-reversal"], tmp_path)
@@ -150,10 +167,10 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     assert all(torch.equal(src[k], cp[k]) for k in src)
     assert json.loads((tmp_path / "cp.json").read_text())["architecture"]["chord_projection"]
     for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
-                       (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file"),
-                       (["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude")):
+                       (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
-    for extra, msg in ((["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
+    for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
+                       (["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
                        (["--head-hidden", "0"], "--hidden and --head-hidden must be >= 1, got 48 and 0"),
@@ -166,13 +183,13 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                         "--time-reversal: task 'magnetic_rod' is not time-reversible"),
                        (["--task", "magnetic_rod", "--chord-projection"],
                         "--chord-projection: task 'magnetic_rod' tracks points that are not a chain")):
-        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
-    usage = run([str(ROOT / "scripts/train_surrogate.py"), "--help"], tmp_path).stdout
-    usage = " ".join(usage.split())  # every option explained, whatever the terminal width
+        parse_fails("train_surrogate", ["--quick", *extra], msg, capsys)
+    with pytest.raises(SystemExit):
+        load_script("train_surrogate").parse(["--help"])
+    usage = " ".join(capsys.readouterr().out.split())  # every option explained, whatever the terminal width
     assert "--rest-anchor subtract the model's output at rest" in usage and usage.count("(default:") >= 30
     for mirror in ("w", "zz"):
-        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--mirror", mirror], tmp_path,
-                     "--mirror must name task 'semicircle'")
+        parse_fails("train_surrogate", ["--quick", "--mirror", mirror], "--mirror must name task 'semicircle'", capsys)
 
 
 def test_train_surrogate_ddp_trains_on_two_processes_and_its_run_resumes_in_one(tmp_path):
@@ -218,7 +235,7 @@ def test_train_surrogate_validates_on_the_printed_tail(tmp_path):
     assert abs(score[0.0] - score[0.2]) > 1e-3 * score[0.2]  # without the tail, the test range would validate
 
 
-def test_train_surrogate_ema_validates_and_ships_the_averaged_weights(tmp_path):
+def test_train_surrogate_ema_validates_and_ships_the_averaged_weights(tmp_path, capsys):
     """--ema: an exponential moving average of the weights, updated every optimiser step, is what each
     epoch validates and what the checkpoint ships; the optimisation itself is the run's without it."""
     from cmlearn.data import load_dataset
@@ -259,15 +276,7 @@ def test_train_surrogate_ema_validates_and_ships_the_averaged_weights(tmp_path):
     last = next((tmp_path / "logs_ema").rglob("last.ckpt"))
     for extra, msg in ((["--ema", "1"], "--ema must lie in [0, 1) (0: off), got 1.0"),
                        (["--resume", str(last)], f"--resume: {last} comes from a run with --ema")):
-        script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", *extra], tmp_path, msg)
-
-
-def load_script(name):
-    import importlib.util
-    spec = importlib.util.spec_from_file_location(f"script_{name}", ROOT / f"scripts/{name}.py")
-    mod = sys.modules[f"script_{name}"] = importlib.util.module_from_spec(spec)  # dataclasses look it up
-    spec.loader.exec_module(mod)
-    return mod
+        parse_fails("train_surrogate", ["--quick", *extra], msg, capsys)
 
 
 def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
