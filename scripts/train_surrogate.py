@@ -59,7 +59,7 @@ class Args:
                                         "its reference length, for rods that hardly stretch; no weights, so "
                                         "--init-from may add it (no shipped model uses it: docs/surrogates.md)")
     mirror: str = opt("", "axis letters (x, y, z; e.g. zx): make the step equivariant under those reflections "
-                          "of the task")
+                          "of the task; no weights, so --init-from may add or drop them")
     horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
     warmup_epochs: int = opt(15, "epochs over which the rollout horizon grows linearly up to --horizon")
     epochs: int = opt(60, "maximum number of epochs")
@@ -180,11 +180,11 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
     except CheckpointError as e:
         raise SystemExit(f"--init-from: {e}") from None
     want = model_config(task, a)
+    # the chord projection, the rest anchor and the mirrors have no weights: a run may add or drop them
     if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
-               rest_shape=want.rest_shape) != want:
+               rest_shape=want.rest_shape, reflections=want.reflections) != want:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{want.to_dict()} (pass the same --eta, --hidden, --head-hidden, "
-                         "--mirror)")
+                         f"{want.to_dict()} (pass the same --eta, --hidden, --head-hidden)")
     return init, meta
 
 

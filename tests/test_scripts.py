@@ -159,13 +159,14 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     fresh = torch.load(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", weights_only=False)  # validated on
     assert ft_meta["val_data_hash"] == fresh["meta"]["data_hash"] and ft_meta["args"]["val_seed"] == 1
     assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
-    # the chord projection has no weights: a run may add it to a checkpoint trained without
+    # the chord projection and the mirrors have no weights: a run may add the one and drop the other
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
-                "--rest-anchor", "--mirror", "zx", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
+                "--rest-anchor", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
                 "--epochs", "1", "--chord-projection", "--out", "cp.pt", "--log-dir", "logs_cp"], tmp_path)
     cp = torch.load(tmp_path / "cp.pt", weights_only=True)["state_dict"]
     assert all(torch.equal(src[k], cp[k]) for k in src)
-    assert json.loads((tmp_path / "cp.json").read_text())["architecture"]["chord_projection"]
+    cp_arch = json.loads((tmp_path / "cp.json").read_text())["architecture"]
+    assert cp_arch["chord_projection"] and cp_arch["reflections"] == []
     for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
