@@ -144,7 +144,8 @@ def test_shipped_surrogate_rollout_on_cuda_equals_cpu():
 
 
 def test_chord_projected_mirrored_rollout_on_cuda_equals_cpu():
-    """The shipped mirrored model with the chord projection (its batched tridiagonal solves) on both devices."""
+    """The shipped mirrored model with the chord projection (its batched tridiagonal solves) on both devices, with
+    every mirror image and with the one image the printed push's symmetry leaves."""
     from cmlearn.models import NodeLSTMSurrogate
     from cmlearn.surrogate import Surrogate
 
@@ -166,6 +167,13 @@ def test_chord_projected_mirrored_rollout_on_cuda_equals_cpu():
     assert gpu.device.type == CUDA.type and swing > 1e-4
     assert float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
     assert float((chords(gpu.cpu()) - chords(ref)).abs().max()) < 2e-6
+    # the printed push is symmetric under both mirrors: one image per step on the GPU, the same rollout
+    axes = model.invariant_axes(hist, W)
+    with torch.no_grad():
+        one = model.to(CUDA).use_symmetry(axes).rollout(hist.to(CUDA), W.to(CUDA), ref.to(CUDA))
+    model.use_symmetry(()).cpu()
+    assert axes == (0, 2) and one.device.type == CUDA.type
+    assert float((one.cpu() - cpu).abs().max()) < 1e-3 * swing
 
 
 def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():

@@ -389,6 +389,64 @@ def test_two_mirrors_make_a_group_and_keep_a_symmetric_planar_push_both():
     assert float(d.abs().max()) > 1e-5
 
 
+@torch.no_grad()
+def test_a_symmetric_scene_needs_one_image_per_coset_and_gets_the_same_rollout():
+    """A mirrored model on a mirror-symmetric scene: the printed push is invariant under both reflections, a
+    push along z under x only, a random one under neither; evaluating one image per coset of those
+    symmetries and projecting gives the whole group's rollout (float64: to 1e-12 of the swing), eagerly,
+    frozen, compiled and through the engine, in one image's work where both mirrors hold."""
+    from dataclasses import replace
+    task = get_task("semicircle")
+    torch.manual_seed(4)
+    model = live_head(NodeLSTMSurrogate(task.model_config(hidden=16, mirror="zx", rest_anchor=True))).double()
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)][None]
+    hist = ref[:, None].expand(-1, 3, -1, -1)
+    mid = task.modeled.index(50)
+    pushes = {(0, 2): (1, -1.0), (0,): (2, -1.0), (): (None, None)}
+    for want_axes, (axis, size) in pushes.items():
+        f = torch.zeros(1, 12, len(task.modeled), 3, dtype=torch.float64)
+        if axis is None:
+            f.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(5))
+        else:
+            f[..., mid, axis] = size
+        ref_m = ref + torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64)  # another place of the mirror planes
+        axes = model.invariant_axes(torch.cat([hist, ref_m[:, None] - ref[:, None] + hist], 0), f.expand(2, -1, -1, -1))
+        assert axes == want_axes
+        for frozen in (False, True):
+            if frozen:
+                model.freeze_features()
+            full = model.use_symmetry(()).rollout(hist, f, ref)
+            reduced = model.use_symmetry(axes).rollout(hist, f, ref)
+            swing = float((full - ref[:, None]).abs().max())
+            assert swing > 1e-5 and float((reduced - full).abs().max()) < 1e-12 * swing
+            assert model.img_sign.shape[0] == 4 >> len(axes)  # one image per coset
+            model.use_symmetry(())
+        model.unfreeze_features()
+    assert model.invariant_axes(hist + 1e-4 * torch.randn(hist.shape, dtype=torch.float64), f) == ()  # the history too
+    with pytest.raises(ValueError, match=r"axes must be among the model's reflection axes \(2, 0\), got \(1,\)"):
+        model.use_symmetry((1,))
+    model.use_symmetry((0, 2)).train()
+    assert model.symmetry_axes == () and model.img_sign.shape[0] == 4  # training sees every image
+    # the engine finds the scene's symmetry and steps the same rollout (float32, compiled too)
+    model.a_scale.fill_(1e-2)  # a swing well above float32's rounding over ten steps of the printed push
+    engine = Surrogate(model.float().eval(), {"task": "semicircle"})
+    scene = replace(task.base_scene(), duration=0.1)
+    W = engine.scene_wrench(scene, 10)
+    assert engine.scene_symmetry(scene, W) == (0, 2) and engine.scene_symmetry(task.scene_by_name("semicircle_heldout"),
+                                                                                engine.scene_wrench(task.scene_by_name(
+                                                                                    "semicircle_heldout"), 200)) == (0,)
+    seen, head = [], model._head
+    model._head = lambda f, *a: seen.append(f.shape[0]) or head(f, *a)  # noqa: E731 (records the images run)
+    rolled, _ = engine.run_scene(scene)
+    del model._head
+    assert set(seen) == {len(task.modeled)} and model.symmetry_axes == ()  # one image each step; restored
+    direct = model.rollout(rolled[:1].expand(3, -1, -1)[None], W[None], rolled[:1])[0]
+    swing = float((direct - rolled[:1]).abs().max())
+    assert swing > 1e-5 and float((rolled[1:] - direct).abs().max()) < 1e-4 * swing
+    compiled, _ = engine.compile().run_scene(scene)
+    assert float((compiled - rolled).abs().max()) < 1e-4 * swing
+
+
 def chords(x):
     return (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1)
 

@@ -37,7 +37,11 @@ costs the model nothing it could have learned; it keeps a motion in a mirror pla
 semicircle pushed in its plane) in that plane exactly, and a symmetric motion symmetric (the same
 semicircle's middle node stays on its plane of symmetry), instead of leaking out of them, and every
 training window also teaches its mirror images. All ``|G|`` images run as one batch ``|G|`` times the
-size through the LSTM and the head.
+size through the LSTM and the head. Where the inputs themselves are invariant under a subgroup ``H`` (a
+rollout of a symmetric scene: :meth:`invariant_axes`, :meth:`use_symmetry`), ``g h x = g x`` for ``h`` in
+``H``, so the mean needs one image per coset: ``a(x) = P_H mean_r r a_net(r x)`` over representatives ``r``
+of ``G / H``, ``P_H`` the mean over ``H`` (the group is abelian), the same function with ``|G| / |H|``
+images (Simulation III's printed push is invariant under both mirrors: one image instead of four).
 
 With ``chord_projection`` each rollout step ends by moving the modelled nodes (anchors fixed) so that every
 chord between consecutive tracked nodes keeps its length in ``ref`` (:meth:`project_chords`): for rods that
@@ -164,9 +168,65 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("mirror_perm", torch.tensor(perms, dtype=torch.long), persistent=False)  # (G, n_tracked)
         self.register_buffer("mirror_perm_modeled", torch.tensor([[slot[p[n]] for n in c.modeled] for p in perms],
                                                                  dtype=torch.long), persistent=False)  # (G, K)
-        self.register_buffer("mirror_group", torch.arange(len(signs))[:, None], persistent=False)  # (G, 1)
         for name in ("_feature_matrix", "_feature_rows", "_feature_blocks"):  # freeze_features; buffers, so that
-            self.register_buffer(name, None, persistent=False)                 # .to(device) moves them too
+            for part in ("", "_group"):                                        # .to(device) moves them too
+                self.register_buffer(name + part, None, persistent=False)     # (images in use; every image)
+        self.use_symmetry(())  # the images in use (all of G) and the stabiliser projected on (none)
+
+    def invariant_axes(self, frames: Tensor, wrench: Tensor, rtol: float = 1e-6) -> tuple[int, ...]:
+        """The axes of the model's reflections under which the inputs of a rollout are invariant: every frame
+        (B, T, n_tracked, 3) (histories, the reference, anchors; one mirror plane for all of them, a
+        translation along the axis being invisible to the model) and the forces (B, H, K, 3) equal their
+        mirror images to ``rtol`` of the rod length (forces: of their scale). The config's ``rest_shape``
+        counts as a frame. A model evaluated with :meth:`use_symmetry` of these axes keeps such a rollout
+        symmetric, as the whole group does."""
+        if self.rest_frame is not None:
+            frames = torch.cat([frames, self.rest_frame.to(frames)[None, None].expand(frames.shape[0], 1, -1, -1)], 1)
+        tol, tol_f = rtol * float(self.length_scale), rtol * float(self.f_scale)
+        worst = lambda x: float(x.abs().max()) if x.numel() else 0.0  # noqa: E731
+        axes = []
+        for j, (axis, _) in enumerate(self.config.reflections):
+            g = 1 << j  # the group element of generator j alone
+            d = (frames[..., self.mirror_perm[g], :] * self.mirror_sign[g] - frames).flatten(1, -2)
+            shift = d[..., axis]  # one translation along the axis per batch element
+            other = torch.cat([d[..., :axis], d[..., axis + 1:]], -1)
+            dw = wrench[..., self.mirror_perm_modeled[g], :] * self.mirror_sign[g] - wrench
+            if worst(other) <= tol and worst(dw) <= tol_f and worst(shift.amax(1) - shift.amin(1)) <= tol:
+                axes.append(axis)
+        return tuple(sorted(axes))
+
+    def use_symmetry(self, axes: tuple[int, ...] = ()) -> "NodeLSTMSurrogate":
+        """Evaluate the mirrored step for inputs invariant under the reflections of these world ``axes`` (a
+        subset of the model's; from :meth:`invariant_axes`): one image per coset of the subgroup ``H`` they
+        generate, then the projection on ``H`` (the module docstring). Inputs that are not invariant get wrong
+        steps; ``()`` (and ``train()``) returns to the whole group. Re-freezes frozen features."""
+        mine = [a for a, _ in self.config.reflections]
+        if any(a not in mine for a in axes):
+            raise ValueError(f"axes must be among the model's reflection axes {tuple(mine)}, got {tuple(axes)}")
+        stab = sum(1 << mine.index(a) for a in axes)
+        G = self.mirror_sign.shape[0]
+        reps = [g for g in range(G) if not g & stab]  # one element per coset g H
+        sub = [g for g in range(G) if not g & ~stab]  # H
+        self.symmetry_axes = tuple(sorted(set(axes)))
+        dev = self.mirror_perm.device
+        for kind, idx in (("img", reps), ("stab", sub)):  # buffers, so that .to(device) moves them too
+            idx = torch.tensor(idx, device=dev)
+            for name in ("sign", "perm", "perm_modeled"):
+                table = getattr(self, f"mirror_{name}")[idx] if kind == "img" or len(sub) > 1 else None
+                self.register_buffer(f"{kind}_{name}", table, persistent=False)
+        self.register_buffer("img_index", torch.arange(len(reps), device=dev)[:, None], persistent=False)
+        self.register_buffer("img_elements", torch.tensor(reps, device=dev), persistent=False)
+        self._select_features()
+        return self
+
+    def _mean_back(self, y: Tensor, B: int, modeled: bool = True) -> Tensor:
+        """``P_H mean_r r^-1 y_r`` of per-image outputs ``y`` (R * B, nodes, 3), image-major, that transform
+        like displacements (nodes: the modelled ones, or all tracked with ``modeled=False``)."""
+        perm = self.img_perm_modeled if modeled else self.img_perm
+        y = (y.unflatten(0, (perm.shape[0], B)).movedim(0, 1)[:, self.img_index, perm] * self.img_sign[:, None]).mean(1)
+        if self.stab_sign is not None:
+            y = (y[:, self.stab_perm_modeled if modeled else self.stab_perm] * self.stab_sign[:, None]).mean(1)
+        return y
 
     @torch.no_grad()
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
@@ -211,8 +271,9 @@ class NodeLSTMSurrogate(nn.Module):
         (``forward(..., program=True)``), per node, since node ``k``'s features depend only on its own
         and its two neighbours' positions: the matrix from those ``(eta + 2) * 9`` numbers to its
         ``(eta + 1) * 18`` features (eagerly one matrix product is faster, compiled the blocks).
-        Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``) returns to
-        the explicit computation."""
+        Every mirror image's matrices are kept; those of the images in use (:meth:`use_symmetry`) are
+        taken from them. Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``)
+        returns to the explicit computation."""
         W, N, K = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel()
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
@@ -235,17 +296,29 @@ class NodeLSTMSurrogate(nn.Module):
         flip = (((frame[None, :, :, 0] + self.mirror_perm[:, None]) * 3)[..., None]
                 + torch.arange(3, device=nodes.device)).flatten(1)  # (G, D)
         dense = dense.reshape(D, -1)
-        self._feature_matrix = torch.cat([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G * K * W * 18)
-        self._feature_rows = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 9)
-        self._feature_blocks = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 9, W * 18)
+        self._feature_matrix_group = torch.stack([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G, K * W * 18)
+        self._feature_rows_group = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 9)
+        self._feature_blocks_group = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 9, W * 18)
+        self._select_features()
         return self
+
+    def _select_features(self) -> None:
+        """The frozen matrices of the images in use, from every image's."""
+        if self._feature_matrix_group is None:
+            return
+        g = self.img_elements
+        self._feature_matrix = self._feature_matrix_group[:, g].flatten(1)  # (D, G * K * W * 18), image-major
+        self._feature_rows, self._feature_blocks = self._feature_rows_group[g], self._feature_blocks_group[g]
 
     def unfreeze_features(self) -> None:
         self._feature_matrix = self._feature_rows = self._feature_blocks = None
+        self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
 
     def train(self, mode: bool = True):
         if mode:
             self.unfreeze_features()
+            if self.symmetry_axes:
+                self.use_symmetry(())
         return super().train(mode)
 
     def _lstm_last(self, f: Tensor) -> Tensor:
@@ -263,14 +336,14 @@ class NodeLSTMSurrogate(nn.Module):
         return h
 
     def _input_features(self, hist: Tensor, ref: Tensor, program: bool) -> Tensor:
-        """Input Layer I of every symmetry image ``g`` of the inputs, as (G * B * K, W, 18) LSTM sequences
-        (image-major; frozen, the reflections are folded into the feature matrices)."""
+        """Input Layer I of every symmetry image ``g`` in use of the inputs, as (G * B * K, W, 18) LSTM
+        sequences (image-major; frozen, the reflections are folded into the feature matrices)."""
         B, W = hist.shape[:2]
-        G, K = self.mirror_sign.shape[0], self.idx_modeled.numel()
+        G, K = self.img_sign.shape[0], self.idx_modeled.numel()
         M = self._feature_matrix
         if M is None:
             if G > 1:
-                hist = (hist[:, :, self.mirror_perm] * self.mirror_sign[:, None]).movedim(2, 0).flatten(0, 1)
+                hist = (hist[:, :, self.img_perm] * self.img_sign[:, None]).movedim(2, 0).flatten(0, 1)
                 ref = self._mirror_images(ref)
             return self.features(hist, ref).reshape(G * B * K, W, N_FEATURES)
         x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
@@ -281,19 +354,19 @@ class NodeLSTMSurrogate(nn.Module):
         return f.reshape(G * B * K, W, N_FEATURES)
 
     def _mirror_images(self, x: Tensor) -> Tensor:
-        """Every symmetry image ``g x`` of frames (B, n_tracked, 3), as (G * B, n_tracked, 3), image-major."""
-        return (x[:, self.mirror_perm] * self.mirror_sign[:, None]).movedim(1, 0).flatten(0, 1)
+        """Every symmetry image in use ``g x`` of frames (B, n_tracked, 3), as (G * B, n_tracked, 3),
+        image-major."""
+        return (x[:, self.img_perm] * self.img_sign[:, None]).movedim(1, 0).flatten(0, 1)
 
     def _accel(self, hist: Tensor, wrench: Tensor, ref: Tensor, program: bool) -> Tensor:
         """The head's second difference (B, K, 3) in metres, symmetrised over the mirror group, before the
         rest anchor."""
         f = self._input_features(hist, ref, program)
-        G, B = self.mirror_sign.shape[0], hist.shape[0]
-        if G == 1:
+        if self.mirror_sign.shape[0] == 1:
             return self._head(f, wrench, program)
-        S, pk = self.mirror_sign[:, None], self.mirror_perm_modeled
-        a = self._head(f, (wrench[:, pk] * S).movedim(1, 0).flatten(0, 1), program).unflatten(0, (G, B))
-        return (a.movedim(0, 1)[:, self.mirror_group, pk] * S).mean(1)
+        S, pk = self.img_sign[:, None], self.img_perm_modeled
+        a = self._head(f, (wrench[:, pk] * S).movedim(1, 0).flatten(0, 1), program)
+        return self._mean_back(a, hist.shape[0])
 
     def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
         """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, 18) and forces
@@ -332,14 +405,13 @@ class NodeLSTMSurrogate(nn.Module):
         ``x -= J^T (J J^T)^-1 g`` for the chord errors ``g`` (``J J^T`` is tridiagonal along the chain), each
         the smallest move that fixes the chords to first order, so the result is the nearest such frame up to
         terms quadratic in the chord errors. Differentiable. With mirror symmetries it is the mean of the projections
-        of every mirror image, mapped back: the projections of a frame and of its image round differently, and the
-        mean takes no side."""
-        G, B = self.mirror_sign.shape[0], frame.shape[0]
-        if G == 1:
+        of every mirror image, mapped back (``x + mean_g g^-1 (P(g x) - g x)``, the moves being translation free):
+        the projections of a frame and of its image round differently, and the mean takes no side."""
+        if self.mirror_sign.shape[0] == 1:
             return self._project_chords(frame, ref, iters)
-        out = self._project_chords(self._mirror_images(frame), self._mirror_images(ref), iters).unflatten(0, (G, B))
-        # each element is its own inverse: image g mapped back is sign[g] * out[g][:, perm[g]]
-        return (out.movedim(0, 1)[:, self.mirror_group, self.mirror_perm] * self.mirror_sign[:, None]).mean(1)
+        images = self._mirror_images(frame)
+        return frame + self._mean_back(self._project_chords(images, self._mirror_images(ref), iters) - images,
+                                       frame.shape[0], modeled=False)
 
     def _project_chords(self, frame: Tensor, ref: Tensor, iters: int) -> Tensor:
         target = (ref[:, 1:] - ref[:, :-1]).norm(dim=-1)

@@ -6,11 +6,15 @@
 ``step(hist, wrench)`` is the batch-1 step a controller calls; ``compile()`` swaps in a step
 compiled ahead of time per input shape (:func:`physics.programs.compile_program`: the LSTM
 decomposed into matrix products and fused gates, a few us of call overhead; its compile time, a
-few seconds, is not part of any step latency figure).
+few seconds, is not part of any step latency figure). A mirrored model (``reflections``) on a scene
+that is itself mirror symmetric (its initial shape and every force, e.g. Simulation III's printed push)
+runs its rollout with one image per coset of the scene's symmetries (``run_scene``; by hand:
+``with engine.symmetric(axes):``), the same step in fewer operations.
 """
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -83,10 +87,30 @@ class Surrogate:
         a model without the rest anchor."""
         if not self.model.config.rest_anchor:
             return None
-        key = (id(ref), ref._version, ref.shape, ref.dtype)
+        key = (id(ref), ref._version, ref.shape, ref.dtype, self.model.symmetry_axes)
         if key != self._rest_key:
             self._rest_key, self._rest = key, self.model.rest_accel(ref)
         return self._rest
+
+    @contextmanager
+    def symmetric(self, axes: tuple[int, ...]):
+        """Within it, step as for inputs invariant under the model's reflections of these world ``axes``
+        (fewer images: :meth:`~cmlearn.models.NodeLSTMSurrogate.use_symmetry`; from :meth:`scene_symmetry`);
+        after it, as before. :meth:`run_scene` steps a scene so."""
+        before = self.model.symmetry_axes
+        self.model.use_symmetry(axes)
+        try:
+            yield self
+        finally:
+            self.model.use_symmetry(before)
+
+    def scene_symmetry(self, scene, wrench: Tensor) -> tuple[int, ...]:
+        """The model's reflection axes under which the scene's initial shape and node forces (n_steps, K, 3)
+        are invariant (to 1e-6 of the rod length and of the force scale), so that the rollout stays so."""
+        if not self.model.config.reflections:
+            return ()
+        p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
+        return self.model.invariant_axes(p0[None, None], wrench[None])
 
     @torch.no_grad()
     def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
@@ -102,7 +126,7 @@ class Surrogate:
 
         def step(hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
             args = [hist, wrench, ref] + ([] if rest is None else [rest])
-            key = tuple((a.shape, a.stride(), a.dtype) for a in args)
+            key = tuple((a.shape, a.stride(), a.dtype) for a in args) + (model.symmetry_axes,)
             prog = programs.get(key)
             if prog is None:
                 def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
@@ -143,30 +167,42 @@ class Surrogate:
         idx = self.model.idx_modeled
         ref = p0[None]
         out = [p0]
-        for k in range(n):
-            pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], ref)[0]
-            nxt = frames[-1].index_copy(0, idx, pk)
-            frames.append(nxt)
-            out.append(nxt)
+        with self.symmetric(self.scene_symmetry(scene, wrench)):
+            for k in range(n):
+                pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], ref)[0]
+                nxt = frames[-1].index_copy(0, idx, pk)
+                frames.append(nxt)
+                out.append(nxt)
         wall = time.perf_counter() - t0
         out = torch.stack(out)
         check_rollout(out, self.task, scene.rod.length)
         return out, wall
 
     @torch.no_grad()
-    def step_latency(self, n: int = 2000, warmup: int = 50) -> float:
-        """Seconds per batch-1 step (median of ``n`` timed steps)."""
+    def step_latency(self, n: int = 2000, warmup: int = 50, scene=None) -> float:
+        """Seconds per batch-1 step (median of ``n`` timed steps): on a synthetic shape with every mirror
+        image, or, given a ``scene``, from its initial shape and first force with the images its
+        symmetries leave (as :meth:`run_scene` steps it)."""
         K, N, W = self.model.idx_modeled.numel(), self.model.config.n_tracked, self.eta + 1
-        hist = torch.zeros(1, W, N, 3)
-        hist[..., 2] = torch.linspace(0, 0.1, N)
-        wrench = torch.zeros(1, K, 3)
+        axes = ()
+        if scene is None:
+            hist = torch.zeros(1, W, N, 3)
+            hist[..., 2] = torch.linspace(0, 0.1, N)
+            wrench = torch.zeros(1, K, 3)
+        else:
+            p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
+            hist = p0[None, None].expand(1, W, -1, -1).contiguous()
+            n_all = int(round(scene.duration / self.task.delta))
+            wrench = self.scene_wrench(scene, n_all)
+            axes, wrench = self.scene_symmetry(scene, wrench), wrench[:1]
         ref = hist[:, 0]
-        for _ in range(warmup):
-            self.step(hist, wrench, ref)
-        times = []
-        for _ in range(n):
-            t0 = time.perf_counter()
-            self.step(hist, wrench, ref)
-            times.append(time.perf_counter() - t0)
+        with self.symmetric(axes):
+            for _ in range(warmup):
+                self.step(hist, wrench, ref)
+            times = []
+            for _ in range(n):
+                t0 = time.perf_counter()
+                self.step(hist, wrench, ref)
+                times.append(time.perf_counter() - t0)
         times.sort()
         return times[len(times) // 2]
