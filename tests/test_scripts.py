@@ -84,13 +84,18 @@ def test_magnet_convergence_report_quick(tmp_path):
     assert errs["1728"] < 1e-4 < errs["8"]
 
 
-@pytest.mark.parametrize("task", ["square_tracking", "magnetic_rod"])  # a plain task and one with its own module
+@pytest.mark.parametrize("task", ["square_tracking", "magnetic_rod", "semicircle"])  # plain, own module, mirrored
 def test_bench_surrogate_quick(tmp_path, task):
     res = run_script([str(ROOT / "scripts/bench/surrogate.py"), "--quick", "--task", task,
                       "--checkpoint", str(ROOT / f"checkpoints/{task}.pt")], tmp_path)
     for key in ("surrogate_step_hz", "lgvi_step_hz", "speedup_per_simulated_second", "quick_rollout_max_err_mm"):
         assert key in res
     assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1
+    if task == "semicircle":  # the printed push keeps one of the four mirror images
+        assert res["scene_symmetry_axes"] == [0, 2] and res["surrogate_step_hz_symmetric"] > 0
+        assert res["speedup_per_simulated_second_symmetric"] > 1
+    else:
+        assert "scene_symmetry_axes" not in res
 
 
 def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):

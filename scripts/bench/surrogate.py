@@ -1,11 +1,14 @@
 """Benchmark: batch-1 surrogate step latency against the LGVI step on the same scene, same run.
 
-    python scripts/bench/surrogate.py [--quick] [--task semicircle] [--checkpoint PATH] [--compile]
+    python scripts/bench/surrogate.py [--quick] [--task semicircle] [--scene NAME] [--checkpoint PATH] [--compile]
 
 Reports the surrogate's steps per second at batch 1 (eager and, with ``--compile``, compiled ahead
 of time by :meth:`cmlearn.surrogate.Surrogate.compile`; the compile time separately), the LGVI's steps per second on the task's scene (eager, float64), the
 wall time per simulated second of each and their ratio, and the errors of a short free-running
-rollout against the LGVI. The magnetic rod runs in closed loop (each step also computes the magnets'
+rollout against the LGVI. A mirrored model is timed twice: with every mirror image (any input: the
+``surrogate_step_*`` keys) and with the images the scene's own symmetries leave, as ``run_scene`` steps
+that scene (the ``*_symmetric`` keys, with ``scene_symmetry_axes``; Simulation III's printed push keeps
+one of four). The magnetic rod runs in closed loop (each step also computes the magnets'
 wrench from its own last frame and the currents): its wall time per simulated second is the closed
 loop's (``surrogate_closed_loop_step_hz``), and its compiled step, which has no closed loop, gives no
 speed-up. Last line: one JSON object.
@@ -28,6 +31,7 @@ from cmlearn.surrogate.evaluate import short_check
 @dataclass
 class Args:
     task: str = "semicircle"
+    scene: str = ""
     checkpoint: str = ""
     quick: bool = False
     compile: bool = False
@@ -37,6 +41,7 @@ class Args:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--task", default="semicircle")
+    ap.add_argument("--scene", default="", help="one of the task's scenes (default: the printed one)")
     ap.add_argument("--checkpoint", default="")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--compile", action="store_true")
@@ -45,9 +50,19 @@ def main(argv=None):
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
     engine = Surrogate.load(find_checkpoint(task.name, a.checkpoint or None), task=task.name)
+    scene = task.scene_by_name(a.scene or task.scene)
+    dur = 0.2 if a.quick else 1.0
+    short = replace(scene, duration=dur)
     n = 300 if a.quick else 3000
+    mirrored = bool(engine.model.config.reflections) and not task.custom
+    axes = engine.scene_symmetry(scene, engine.scene_wrench(scene, int(round(scene.duration / task.delta)))) \
+        if mirrored else ()
     step_s = engine.step_latency(n=n)
     res = {"surrogate_step_hz": 1 / step_s, "surrogate_step_us": step_s * 1e6}
+    if mirrored:
+        step_y = engine.step_latency(n=n, scene=scene)
+        res.update({"scene_symmetry_axes": list(axes), "surrogate_step_hz_symmetric": 1 / step_y,
+                    "surrogate_step_us_symmetric": step_y * 1e6})
     if a.compile:
         t0 = time.perf_counter()
         engine.compile()
@@ -55,9 +70,11 @@ def main(argv=None):
         res["compile_s"] = time.perf_counter() - t0
         step_c = engine.step_latency(n=n)
         res.update({"surrogate_step_hz_compiled": 1 / step_c, "surrogate_step_us_compiled": step_c * 1e6})
-    scene = task.base_scene()
-    dur = 0.2 if a.quick else 1.0
-    short = replace(scene, duration=dur)
+        if mirrored:
+            engine.step_latency(n=5, warmup=1, scene=scene)  # its own program
+            step_yc = engine.step_latency(n=n, scene=scene)
+            res.update({"surrogate_step_hz_symmetric_compiled": 1 / step_yc,
+                        "surrogate_step_us_symmetric_compiled": step_yc * 1e6})
     _, _, lgvi_wall = scene_rollout(task, short)
     lgvi_steps = int(round(dur / scene.dt))
     sur_per_sim_s = step_s / task.delta
@@ -89,17 +106,23 @@ def main(argv=None):
         lgvi_c_per_sim_s = (time.perf_counter() - t0) / (n_c * scene.dt)
         res.update({"lgvi_step_hz_compiled": 1 / (lgvi_c_per_sim_s * scene.dt),
                     "speedup_per_simulated_second_both_compiled": lgvi_c_per_sim_s * task.delta / step_c})
-    check = short_check(engine, task.scene, dur)
+        if mirrored:
+            res.update({"speedup_per_simulated_second_symmetric_compiled": lgvi_per_sim_s * task.delta / step_yc,
+                        "speedup_per_simulated_second_symmetric_both_compiled":
+                            lgvi_c_per_sim_s * task.delta / step_yc})
+    if mirrored:
+        res["speedup_per_simulated_second_symmetric"] = lgvi_per_sim_s * task.delta / step_y
+    check = short_check(engine, scene.name, dur)
     res.update({
         "lgvi_step_hz": lgvi_steps / lgvi_wall, "lgvi_wall_per_sim_s": lgvi_per_sim_s,
         "surrogate_wall_per_sim_s": sur_per_sim_s, "speedup_per_simulated_second": lgvi_per_sim_s / sur_per_sim_s,
         **({"speedup_per_simulated_second_compiled": lgvi_per_sim_s * task.delta / step_c}
            if compiled_ratios else {}),
-        "quick_rollout_max_err_mm": check["max_err_mm"], "quick_rollout_s": dur,
+        "quick_rollout_max_err_mm": check["max_err_mm"], "quick_rollout_s": dur, "scene": scene.name,
         "surrogate_delta_s": task.delta, "lgvi_dt_s": scene.dt, "n_tracked": len(task.tracked),
         "n_modeled": len(task.modeled), "lgvi_nodes": scene.rod.n_nodes, "batch": 1, "threads": a.threads,
         "dtype_surrogate": "float32", "dtype_lgvi": "float64", "device": "cpu", "args": asdict(a)})
-    print(f"{task.name}: surrogate {res['surrogate_step_hz']:.0f} steps/s at batch 1 ({step_s * 1e6:.0f} us), "
+    print(f"{task.name} ({scene.name}): surrogate {res['surrogate_step_hz']:.0f} steps/s at batch 1 ({step_s * 1e6:.0f} us), "
           f"LGVI {res['lgvi_step_hz']:.0f} steps/s on {scene.rod.n_nodes} nodes")
     if task.custom:
         print(f"  closed loop (step and the magnets' wrench): {res['surrogate_closed_loop_step_hz']:.0f} steps/s "
@@ -113,7 +136,14 @@ def main(argv=None):
                   f"compiled too ({res['lgvi_step_hz_compiled']:.0f} steps/s): "
                   f"{res['speedup_per_simulated_second_both_compiled']:.0f}x" if compiled_ratios else
                   f" (task {task.name!r}: its closed loop runs eager, and its LGVI's coil field recompiles every step)"))
-    print(f"  free-running error over {dur} s of {task.scene}: {check['max_err_mm']:.2f} mm")
+    if mirrored:
+        print(f"  with the scene's symmetries (axes {axes}: {engine.model.mirror_sign.shape[0] >> len(axes)} of "
+              f"{engine.model.mirror_sign.shape[0]} mirror images): {res['surrogate_step_hz_symmetric']:.0f} steps/s "
+              f"-> {res['speedup_per_simulated_second_symmetric']:.0f}x" + (
+                  f"; compiled {res['surrogate_step_hz_symmetric_compiled']:.0f} steps/s -> "
+                  f"{res['speedup_per_simulated_second_symmetric_compiled']:.0f}x (both compiled: "
+                  f"{res['speedup_per_simulated_second_symmetric_both_compiled']:.0f}x)" if a.compile else ""))
+    print(f"  free-running error over {dur} s of {scene.name}: {check['max_err_mm']:.2f} mm")
     print(json.dumps(res))
     return res
 
