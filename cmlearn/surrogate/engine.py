@@ -107,10 +107,15 @@ class Surrogate:
     def scene_symmetry(self, scene, wrench: Tensor) -> tuple[int, ...]:
         """The model's reflection axes under which the scene's initial shape and node forces (n_steps, K, 3)
         are invariant (to 1e-6 of the rod length and of the force scale), so that the rollout stays so."""
-        if not self.model.config.reflections:
-            return ()
-        p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
-        return self.model.invariant_axes(p0[None, None], wrench[None])
+        return self._symmetry(self._initial_points(scene), wrench)
+
+    def _symmetry(self, p0: Tensor, wrench: Tensor) -> tuple[int, ...]:
+        """:meth:`scene_symmetry` from the scene's initial tracked points (n_tracked, 3)."""
+        return self.model.invariant_axes(p0[None, None], wrench[None]) if self.model.config.reflections else ()
+
+    def _initial_points(self, scene) -> Tensor:
+        """The tracked nodes' initial positions (n_tracked, 3), float32."""
+        return scene.initial_configuration()["p"][list(self.task.tracked)].float()
 
     @torch.no_grad()
     def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
@@ -160,14 +165,14 @@ class Surrogate:
             check_rollout(out[0], self.task, scene.rod.length)
             return out
         n = int(round((duration or scene.duration) / self.task.delta))
-        p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
+        p0 = self._initial_points(scene)
         t0 = time.perf_counter()
         wrench = self.scene_wrench(scene, n)
         frames = [p0] * (self.eta + 1)
         idx = self.model.idx_modeled
         ref = p0[None]
         out = [p0]
-        with self.symmetric(self.scene_symmetry(scene, wrench)):
+        with self.symmetric(self._symmetry(p0, wrench)):
             for k in range(n):
                 pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], ref)[0]
                 nxt = frames[-1].index_copy(0, idx, pk)
@@ -190,11 +195,10 @@ class Surrogate:
             hist[..., 2] = torch.linspace(0, 0.1, N)
             wrench = torch.zeros(1, K, 3)
         else:
-            p0 = scene.initial_configuration()["p"][list(self.task.tracked)].float()
+            p0 = self._initial_points(scene)
             hist = p0[None, None].expand(1, W, -1, -1).contiguous()
-            n_all = int(round(scene.duration / self.task.delta))
-            wrench = self.scene_wrench(scene, n_all)
-            axes, wrench = self.scene_symmetry(scene, wrench), wrench[:1]
+            wrench = self.scene_wrench(scene, int(round(scene.duration / self.task.delta)))
+            axes, wrench = self._symmetry(p0, wrench), wrench[:1]
         ref = hist[:, 0]
         with self.symmetric(axes):
             for _ in range(warmup):
