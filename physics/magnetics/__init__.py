@@ -11,6 +11,7 @@ from .dipole import (MU0, dipole_dipole_force, dipole_field, dipole_field_gradie
                      five_to_gradient, force_from_gradient, force_map, gradient_to_five, moment_from_remanence)
 from .elliptic import agm_iterations, ellipe, ellipk
 from .emns import EMNS, MAX_ENUMERATED_COILS, Allocation, allocate_currents, six_coil_emns
+from .field_table import CoilFieldTable
 from .magnets import CuboidMagnet, CylinderMagnet, MagnetField, SphereMagnet
 from .sources import DipoleSet
 
@@ -21,6 +22,6 @@ __all__ = [
     "MU0", "dipole_dipole_force", "dipole_field", "dipole_field_gradient", "dipole_force", "dipole_torque",
     "five_to_gradient", "force_from_gradient", "force_map", "gradient_to_five", "moment_from_remanence",
     "agm_iterations", "ellipe", "ellipk",
-    "EMNS", "MAX_ENUMERATED_COILS", "Allocation", "allocate_currents", "six_coil_emns",
+    "EMNS", "MAX_ENUMERATED_COILS", "Allocation", "allocate_currents", "six_coil_emns", "CoilFieldTable",
     "CuboidMagnet", "CylinderMagnet", "MagnetField", "SphereMagnet", "DipoleSet",
 ]
