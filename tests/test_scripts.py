@@ -96,6 +96,9 @@ def test_bench_surrogate_quick(tmp_path, task):
         assert res["speedup_per_simulated_second_symmetric"] > 1
     else:
         assert "scene_symmetry_axes" not in res
+    if task == "magnetic_rod":  # its closed loop, in the tabulated field and in the exact one
+        assert min(res["surrogate_closed_loop_step_hz"], res["surrogate_closed_loop_latency_us"],
+                   res["surrogate_closed_loop_exact_field_step_hz"]) > 0
 
 
 def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):

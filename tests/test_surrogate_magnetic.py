@@ -306,6 +306,33 @@ def test_shipped_checkpoint_reproduces_its_check_and_compare_prints_degrees(tmp_
     assert set(summary["orientation_deg"]) == {"surrogate", "cosserat"}
 
 
+def test_real_time_closed_loop_runs_in_the_tabulated_field_and_compiles():
+    """The engine's closed loop (run_scene) computes the magnets' wrench in the coil field tabulated over the
+    workspace: its rollout equals the evaluation's closed loop in the exact field (float32 frames; the field
+    differs by 1e-9 relative), and compiled it equals the eager one to round-off over 0.4 s (before any
+    snap-through, where float rounding decides when the rod snaps). A magnet outside the tabulated ball ends
+    the rollout with the step, time and magnet named."""
+    from cmlearn.surrogate import Surrogate, SurrogateDivergence
+    from cmlearn.surrogate.magnetic import check_workspace, closed_loop_latency, field_table, run_scene
+    engine = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt", task="magnetic_rod")
+    scene = replace(get_scene("magnetic_rod_heldout"), duration=0.4)
+    tab, wall = engine.run_scene(scene)
+    exact, _ = run_scene(engine, scene, exact_field=True)
+    assert tab.shape == exact.shape == (21, len(TASK.tracked), 3) and wall > 0
+    moved = float((tab - tab[:1]).abs().max())
+    assert moved > 1e-3 and float((tab - exact).abs().max()) < 1e-6
+    assert closed_loop_latency(engine, scene, n=5, warmup=1) > 0
+    engine.compile()
+    compiled, _ = engine.run_scene(scene)
+    assert float((compiled - tab).abs().max()) < 1e-6
+    field = field_table(scene.loads.field.emns)
+    assert field is field_table(scene.loads.field.emns)  # built once per eMNS
+    away = tab.clone()
+    away[3:] += torch.tensor([0.0, 0.0, -0.06])
+    with pytest.raises(SurrogateDivergence, match=r"workspace at step 3 \(t = 0.060 s\): the proximal magnet"):
+        check_workspace(TASK, scene.rod, field, away)
+
+
 def test_planar_setup_moves_the_rod_in_its_plane_and_the_cosserat_model_follows():
     """The experiment's set-up (magnetic_rod_planar): in-plane fields at the field point, the rod steered in
     the x-z plane, the Cosserat baseline clamped the same way."""

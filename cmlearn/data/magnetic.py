@@ -25,6 +25,7 @@ evaluation uses the exact field.
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import replace
 
@@ -42,9 +43,11 @@ __all__ = ["MARKER_OFFSET", "marker_ids", "tracked_points", "magnet_frames", "ma
 MARKER_OFFSET = 20e-3  # m: lever arm of the virtual markers
 
 
-def block_nodes(rod) -> list[tuple[int, int]]:
-    """End nodes (a, b) of the element of each magnet."""
-    return [(e, e + 1) for e, _ in rod.magnet_weights()]
+@functools.cache
+def block_nodes(rod) -> tuple[tuple[int, int], ...]:
+    """End nodes (a, b) of the element of each magnet (cached per rod: a traced closed loop reads it as a
+    constant)."""
+    return tuple((e, e + 1) for e, _ in rod.magnet_weights())
 
 
 def marker_ids(rod) -> list[tuple[int, int]]:

@@ -58,6 +58,7 @@ class Surrogate:
                                       f"now defines {want}: retrain it with scripts/train_surrogate.py")
         model.freeze_features()
         self._step = self._eager_step
+        self._programs = None  # compiled programs by key and input shapes, after compile()
         self._rest_key = self._rest = None
 
     @classmethod
@@ -122,25 +123,35 @@ class Surrogate:
         return self.model(hist, wrench, ref, rest=rest)
 
     def compile(self) -> "Surrogate":
-        """Run :meth:`step` through programs compiled for each new input shape, of the model's
-        ``program=True`` form (same results to float round-off; ``torch.compile`` of the step did not
-        help: the LSTM stays one opaque call). Programs track no gradients, so the step skips
-        ``no_grad`` (a microsecond a call)."""
-        programs: dict = {}
+        """Run :meth:`step` (and a task's own closed loop, :meth:`program`) through programs compiled for each
+        new input shape, of the model's ``program=True`` form (same results to float round-off;
+        ``torch.compile`` of the step did not help: the LSTM stays one opaque call). Programs track no
+        gradients, so the step skips ``no_grad`` (a microsecond a call)."""
         model = self.model
+
+        def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
+            return model(h, w, r, program=True, rest=rest[0] if rest else None)
 
         def step(hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
             args = [hist, wrench, ref] + ([] if rest is None else [rest])
-            key = tuple((a.shape, a.stride(), a.dtype) for a in args) + (model.symmetry_axes,)
-            prog = programs.get(key)
-            if prog is None:
-                def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
-                    return model(h, w, r, program=True, rest=rest[0] if rest else None)
-                prog = programs[key] = compile_program(fn, args, gemm_templates=True)
-            return prog(*args)
+            return self.program(("step", model.symmetry_axes), lambda program: fn, args)(*args)
 
+        self._programs = {}
         self._step = step
         return self
+
+    def program(self, key, make, args: list):
+        """The function ``make(program)`` builds, for inputs shaped as ``args``: in the model's eager form
+        (``program`` False) or, after :meth:`compile`, compiled from its ``program=True`` form, once per ``key``
+        (what else the function depends on) and input shapes. For a task's own rollout (the magnetic rod's
+        closed loop), which calls it at every step."""
+        if self._programs is None:
+            return make(False)
+        full = (key,) + tuple((a.shape, a.stride(), a.dtype) for a in args)
+        prog = self._programs.get(full)
+        if prog is None:
+            prog = self._programs[full] = compile_program(make(True), args, gemm_templates=True)
+        return prog
 
     def scene_wrench(self, scene, n_steps: int) -> Tensor:
         """Node forces (n_steps, K, 3) at the interval midpoints, as in the training data."""

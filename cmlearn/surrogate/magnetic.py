@@ -23,23 +23,28 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from dataclasses import replace
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from cmlearn.data.magnetic import (by_frames, currents_series, equivalent_forces, field_samples, linearised_field,
+from cmlearn.data.magnetic import (block_nodes, by_frames, currents_series, equivalent_forces, field_samples, linearised_field,
                                    magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
+from physics.magnetics.field_table import CoilFieldTable
 
 from .evaluate import from_rest, interest_slots, one_step
 
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
-           "closed_loop_wrench", "nudged_free_running", "reference_run", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene"]
+           "closed_loop_wrench", "nudged_free_running", "reference_run", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
+           "WORKSPACE_RADIUS", "field_table", "closed_loop_step", "check_workspace"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
+WORKSPACE_RADIUS = 0.05  # m: the six-coil eMNS's spherical workspace (100 mm), where the magnets stay
+_TABLES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # field_table's, per eMNS
 
 
 def orientation_errors(R_pred: Tensor, R_ref: Tensor) -> Tensor:
@@ -272,18 +277,105 @@ def initial_points(task, scene) -> Tensor:
     return tracked_points(task, scene.rod, cfg["p"], cfg["R"]).float()
 
 
+def field_table(emns) -> CoilFieldTable:
+    """``emns``'s field tabulated over the ball of :data:`WORKSPACE_RADIUS` (a 1 mm grid, interpolated at order
+    6: within 3e-9 of the exact superposition and 2e-8 of its gradient, relative, over the default eMNS's
+    workspace; tests), built once per eMNS (about 0.3 s) for the real-time closed loop."""
+    table = _TABLES.get(emns)
+    if table is None:
+        table = _TABLES[emns] = CoilFieldTable.from_emns(emns, radius=WORKSPACE_RADIUS, spacing=1e-3, order=6)
+    return table
+
+
+def closed_loop_step(model, task, rod, field: CoilFieldTable, program: bool = False):
+    """The real-time closed loop's step ``(hist (B, eta+1, n_tracked, 3), currents (B, C), ref (B, n_tracked,
+    3)[, rest]) -> (the history moved on by one frame, that frame (B, n_tracked, 3))``: the magnets' node
+    forces from the last frame in the tabulated ``field`` (its ball unchecked, so that the step compiles:
+    :func:`run_scene` checks it afterwards), then the model's step (``program``: its compiled form); anchors
+    stay put."""
+    idx = model.idx_modeled
+    block_nodes(rod)  # computed with tensors: cached here, outside a trace
+
+    def step(hist: Tensor, I: Tensor, ref: Tensor, *rest: Tensor) -> tuple[Tensor, Tensor]:
+        last = hist[:, -1]
+        f = equivalent_forces(task, rod, last.double(), lambda c: field.field_and_gradient(c, I, check=False))
+        w = node_wrench(f.float(), task.wrench_nodes, task.modeled)
+        nxt = last.index_copy(1, idx, model(hist, w, ref, program=program, rest=rest[0] if rest else None))
+        return torch.cat([hist[:, 1:], nxt[:, None]], 1), nxt
+    return step
+
+
+def check_workspace(task, rod, field: CoilFieldTable, points: Tensor) -> None:
+    """Raise :class:`~.engine.SurrogateDivergence`, naming the step, its time and the magnet, where a rollout's
+    points (T, n_tracked, 3) put a magnet outside ``field``'s tabulated ball (the eMNS's workspace)."""
+    from .engine import SurrogateDivergence
+    c = magnet_frames(task, rod, points.double())[0]
+    bad = field.outside(c) | ~torch.isfinite(c).all(-1)
+    if bool(bad.any()):
+        k, j = (int(x) for x in bad.nonzero()[0])
+        raise SurrogateDivergence(
+            f"the {task.name!r} surrogate left the eMNS's workspace at step {k} (t = {k * task.delta:.3f} s): the "
+            f"{MAGNETS[j]} magnet is {float(c[k, j].norm()):.4g} m from its centre, beyond the {field.radius:g} m "
+            "where its field is tabulated")
+
+
 @torch.no_grad()
-def run_scene(engine, scene, duration: float | None = None) -> tuple[Tensor, float]:
-    """Closed-loop surrogate on ``scene`` from rest: tracked points (T, n_tracked, 3) and the wall time."""
+def run_scene(engine, scene, duration: float | None = None, exact_field: bool = False) -> tuple[Tensor, float]:
+    """Closed-loop surrogate on ``scene`` from rest, in the tabulated field (:func:`field_table`,
+    :func:`closed_loop_step`; compiled after ``engine.compile()``), or with ``exact_field`` in the coils' exact
+    field, eager, as the evaluation runs it (:func:`closed_loop`): tracked points (T, n_tracked, 3) and the wall
+    time, the currents' evaluation included."""
     task = engine.task
     n = int(round((duration or scene.duration) / task.delta))
-    p0 = initial_points(task, scene)
+    ref = initial_points(task, scene)[None]
+    hist = ref[:, None].expand(-1, engine.eta + 1, -1, -1).contiguous()
+    if exact_field:
+        t0 = time.perf_counter()
+        fr = closed_loop(engine.model, task, scene.rod, scene.loads.field.emns, hist, scene.loads.field.currents,
+                         0, n, ref)
+        return torch.cat([ref, fr[0]]), time.perf_counter() - t0
+    field = field_table(scene.loads.field.emns)
+    step, args = _closed_loop_program(engine, scene, field, ref, hist)
     t0 = time.perf_counter()
-    hist = p0[None, None].expand(1, engine.eta + 1, -1, -1)
-    fr = closed_loop(engine.model, task, scene.rod, scene.loads.field.emns, hist, scene.loads.field.currents,
-                     0, n, p0[None])
+    currents = currents_series(scene.loads.field.currents, n, task.delta).split(1)  # n of (1, C)
+    out = [ref]
+    for I in currents:
+        hist, nxt = step(hist, I, *args[2:])
+        out.append(nxt)
     wall = time.perf_counter() - t0
-    return torch.cat([p0[None], fr[0]]), wall
+    out = torch.cat(out)
+    check_workspace(task, scene.rod, field, out)
+    return out, wall
+
+
+def _closed_loop_program(engine, scene, field: CoilFieldTable, ref: Tensor, hist: Tensor):
+    """The engine's closed-loop step for ``scene`` (eager, or compiled after ``engine.compile()``) and its
+    arguments (hist, zero currents, ref[, rest])."""
+    rest = engine.rest_accel(ref)
+    args = [hist, torch.zeros(1, scene.loads.field.emns.n_coils, dtype=torch.float64), ref] \
+        + ([] if rest is None else [rest])
+    step = engine.program(("closed_loop", scene.rod, field),
+                          lambda program: closed_loop_step(engine.model, engine.task, scene.rod, field, program), args)
+    return step, args
+
+
+@torch.no_grad()
+def closed_loop_latency(engine, scene, n: int = 500, warmup: int = 20) -> float:
+    """Seconds per batch-1 closed-loop step (:func:`closed_loop_step`, compiled after ``engine.compile()``; the
+    median of ``n`` timed steps from the scene's initial shape, with its currents given), the field and the
+    wrench included: what a controller that sets the currents waits for."""
+    ref = initial_points(engine.task, scene)[None]
+    hist = ref[:, None].expand(-1, engine.eta + 1, -1, -1).contiguous()
+    step, args = _closed_loop_program(engine, scene, field_table(scene.loads.field.emns), ref, hist)
+    args[1] = currents_series(scene.loads.field.currents, 1, engine.task.delta)
+    for _ in range(warmup):
+        step(*args)
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        step(*args)
+        times.append(time.perf_counter() - t0)
+    return sorted(times)[n // 2]
 
 
 def short_check(engine, scene_name: str, duration: float) -> dict:

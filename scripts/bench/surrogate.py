@@ -9,9 +9,11 @@ rollout against the LGVI. A mirrored model is timed twice: with every mirror ima
 ``surrogate_step_*`` keys) and with the images the scene's own symmetries leave, as ``run_scene`` steps
 that scene (the ``*_symmetric`` keys, with ``scene_symmetry_axes``; Simulation III's printed push keeps
 one of four). The magnetic rod runs in closed loop (each step also computes the magnets'
-wrench from its own last frame and the currents): its wall time per simulated second is the closed
-loop's (``surrogate_closed_loop_step_hz``), and its compiled step, which has no closed loop, gives no
-speed-up. Last line: one JSON object.
+wrench from its own last frame and the currents, in the coils' field tabulated over the workspace): its
+wall time per simulated second is the closed loop's, the currents' evaluation included
+(``surrogate_closed_loop_step_hz``; ``*_latency_us``: a step alone, currents given;
+``*_exact_field_step_hz``: in the exact coil field, as the evaluation runs it), and with ``--compile`` its
+closed loop is compiled too (``*_compiled``). Last line: one JSON object.
 """
 from __future__ import annotations
 
@@ -63,6 +65,22 @@ def main(argv=None):
         step_y = engine.step_latency(n=n, scene=scene)
         res.update({"scene_symmetry_axes": list(axes), "surrogate_step_hz_symmetric": 1 / step_y,
                     "surrogate_step_us_symmetric": step_y * 1e6})
+    n_sur = int(round(dur / task.delta))
+    if task.custom:
+        # the magnetic rod runs in closed loop: each step also computes the magnets' wrench from the model's own
+        # last frame and the currents, so a simulated second costs the closed loop's wall time (the currents'
+        # evaluation included), not the bare step's; in the tabulated field (the engine's), and in the exact
+        # field for comparison (the evaluation's)
+        run, latency = task.hook("run_scene"), task.hook("closed_loop_latency")
+        t0 = time.perf_counter()
+        run(engine, short)  # warm-up, and the field table
+        res["field_table_s"] = time.perf_counter() - t0
+        wall_cl = run(engine, short)[1]
+        wall_exact = run(engine, short, exact_field=True)[1]
+        lat = latency(engine, short, n=n // 10)
+        res.update({"surrogate_closed_loop_step_hz": n_sur / wall_cl,
+                    "surrogate_closed_loop_step_us": wall_cl / n_sur * 1e6, "surrogate_closed_loop_latency_us": lat * 1e6,
+                    "surrogate_closed_loop_exact_field_step_hz": n_sur / wall_exact})
     if a.compile:
         t0 = time.perf_counter()
         engine.compile()
@@ -75,23 +93,26 @@ def main(argv=None):
             step_yc = engine.step_latency(n=n, scene=scene)
             res.update({"surrogate_step_hz_symmetric_compiled": 1 / step_yc,
                         "surrogate_step_us_symmetric_compiled": step_yc * 1e6})
+        if task.custom:
+            t0 = time.perf_counter()
+            run(engine, short)  # compiles the closed loop's program
+            res["closed_loop_compile_s"] = time.perf_counter() - t0
+            wall_clc = run(engine, short)[1]
+            lat_c = latency(engine, short, n=n)
+            res.update({"surrogate_closed_loop_step_hz_compiled": n_sur / wall_clc,
+                        "surrogate_closed_loop_step_us_compiled": wall_clc / n_sur * 1e6,
+                        "surrogate_closed_loop_latency_us_compiled": lat_c * 1e6})
     _, _, lgvi_wall = scene_rollout(task, short)
     lgvi_steps = int(round(dur / scene.dt))
     sur_per_sim_s = step_s / task.delta
     if task.custom:
-        # the magnetic rod runs in closed loop: each step also computes the magnets' wrench from the model's own
-        # last frame and the currents (eager), so a simulated second costs the closed loop's wall time, not the
-        # bare step's; the compiled step has no closed loop and gives no speed-up of its own here
-        engine.run_scene(short)  # warm-up
-        _, wall_cl = engine.run_scene(short)
-        step_cl = wall_cl / int(round(dur / task.delta))
-        res.update({"surrogate_closed_loop_step_hz": 1 / step_cl, "surrogate_closed_loop_step_us": step_cl * 1e6})
-        sur_per_sim_s = step_cl / task.delta
+        sur_per_sim_s = wall_cl / dur
     lgvi_per_sim_s = lgvi_wall / dur
+    if task.custom and a.compile:
+        res["speedup_per_simulated_second_compiled"] = lgvi_per_sim_s * dur / wall_clc
     # the compiled ratios: the LGVI's own compiled path (torch.compile, 4 steps a call) on the same rollout, and
-    # the compiled step against it; not for a task with a module of its own (the magnetic rod): its compiled step
-    # has no closed loop, and its coil field reads the time as a Python number, so torch.compile would recompile
-    # at every step and time its compiler instead
+    # the compiled step against it; not for a task with a module of its own (the magnetic rod): its coil field
+    # reads the time as a Python number, so torch.compile would recompile at every step and time its compiler
     compiled_ratios = a.compile and not task.custom
     if compiled_ratios:
         sim = short.make_integrator()
@@ -125,8 +146,10 @@ def main(argv=None):
     print(f"{task.name} ({scene.name}): surrogate {res['surrogate_step_hz']:.0f} steps/s at batch 1 ({step_s * 1e6:.0f} us), "
           f"LGVI {res['lgvi_step_hz']:.0f} steps/s on {scene.rod.n_nodes} nodes")
     if task.custom:
-        print(f"  closed loop (step and the magnets' wrench): {res['surrogate_closed_loop_step_hz']:.0f} steps/s "
-              f"({res['surrogate_closed_loop_step_us']:.0f} us)")
+        print(f"  closed loop (step and the magnets' wrench, tabulated field): {res['surrogate_closed_loop_step_hz']:.0f} "
+              f"steps/s ({res['surrogate_closed_loop_step_us']:.0f} us; a step alone, currents given, "
+              f"{res['surrogate_closed_loop_latency_us']:.0f} us); in the exact field "
+              f"{res['surrogate_closed_loop_exact_field_step_hz']:.0f} steps/s")
     print(f"  wall per simulated second: LGVI {lgvi_per_sim_s:.2f} s, surrogate {sur_per_sim_s * 1e3:.2f} ms "
           f"-> {res['speedup_per_simulated_second']:.0f}x")
     if a.compile:
@@ -135,7 +158,11 @@ def main(argv=None):
                   f" -> {res['speedup_per_simulated_second_compiled']:.0f}x per simulated second; against the LGVI "
                   f"compiled too ({res['lgvi_step_hz_compiled']:.0f} steps/s): "
                   f"{res['speedup_per_simulated_second_both_compiled']:.0f}x" if compiled_ratios else
-                  f" (task {task.name!r}: its closed loop runs eager, and its LGVI's coil field recompiles every step)"))
+                  f"; its closed loop compiled ({res['closed_loop_compile_s']:.1f} s): "
+                  f"{res['surrogate_closed_loop_step_hz_compiled']:.0f} steps/s with the currents' evaluation, a step "
+                  f"alone {res['surrogate_closed_loop_latency_us_compiled']:.0f} us -> "
+                  f"{res['speedup_per_simulated_second_compiled']:.0f}x per simulated second (its LGVI's coil field "
+                  "recompiles every step, so the LGVI runs eager)"))
     if mirrored:
         print(f"  with the scene's symmetries (axes {axes}: {engine.model.mirror_sign.shape[0] >> len(axes)} of "
               f"{engine.model.mirror_sign.shape[0]} mirror images): {res['surrogate_step_hz_symmetric']:.0f} steps/s "
