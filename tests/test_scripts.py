@@ -76,6 +76,13 @@ def test_bench_magnetics_quick(tmp_path):
     assert res["cube_dipole_rel_err_75mm"] < 1e-4 and res["max_rel_diff_vs_magpylib_dipoles"] < 1e-9
 
 
+def test_field_table_report_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/report_field_table.py"), "--quick", "--out", "ft.md"], tmp_path)
+    assert (tmp_path / "ft.md").exists()
+    coarse, fine = res["rows"]  # order 4 and 6 on a 2 mm grid: order 6 gains two orders at 30 mm
+    assert fine["field_err"]["0.03"] < 1e-7 < coarse["field_err"]["0.03"] < 1e-4
+
+
 def test_magnet_convergence_report_quick(tmp_path):
     pytest.importorskip("magpylib")
     res = run_script([str(ROOT / "scripts/report_magnet_convergence.py"), "--quick", "--out", "conv.md"], tmp_path)

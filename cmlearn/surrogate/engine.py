@@ -9,7 +9,9 @@ decomposed into matrix products and fused gates, a few us of call overhead; its 
 few seconds, is not part of any step latency figure). A mirrored model (``reflections``) on a scene
 that is itself mirror symmetric (its initial shape and every force, e.g. Simulation III's printed push)
 runs its rollout with one image per coset of the scene's symmetries (``run_scene``; by hand:
-``with engine.symmetric(axes):``), the same step in fewer operations.
+``with engine.symmetric(axes):``), the same step in fewer operations. A task with its own rollout (the
+magnetic rod's closed loop, :mod:`cmlearn.surrogate.magnetic`) compiles that whole loop step through
+:meth:`Surrogate.program`.
 """
 from __future__ import annotations
 
@@ -122,12 +124,14 @@ class Surrogate:
     def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
         return self.model(hist, wrench, ref, rest=rest)
 
-    def compile(self) -> "Surrogate":
+    def compile(self, gemm_templates: bool = True) -> "Surrogate":
         """Run :meth:`step` (and a task's own closed loop, :meth:`program`) through programs compiled for each
         new input shape, of the model's ``program=True`` form (same results to float round-off;
         ``torch.compile`` of the step did not help: the LSTM stays one opaque call). Programs track no
-        gradients, so the step skips ``no_grad`` (a microsecond a call)."""
+        gradients, so the step skips ``no_grad`` (a microsecond a call). ``gemm_templates`` False compiles in
+        about half the time to programs about half as fast (tests)."""
         model = self.model
+        self._gemm_templates = gemm_templates
 
         def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
             return model(h, w, r, program=True, rest=rest[0] if rest else None)
@@ -150,7 +154,7 @@ class Surrogate:
         full = (key,) + tuple((a.shape, a.stride(), a.dtype) for a in args)
         prog = self._programs.get(full)
         if prog is None:
-            prog = self._programs[full] = compile_program(make(True), args, gemm_templates=True)
+            prog = self._programs[full] = compile_program(make(True), args, gemm_templates=self._gemm_templates)
         return prog
 
     def scene_wrench(self, scene, n_steps: int) -> Tensor:

@@ -18,8 +18,8 @@ one table. A 2-D table is small (1 mm spacing over a 50 mm ball: 107 x 57 nodes,
 and an evaluation is a fixed sequence of about thirty tensor operations with no data-dependent control
 flow, so it also runs in programs compiled ahead of time. Over the default eMNS's workspace, at order 6,
 it agrees with the exact superposition to 2.5e-9 of the field and 1.4e-8 of the gradient with a 1 mm grid
-(3e-11 and 2e-10 with 0.5 mm; relative, worst of 4,000 points), at a sixth of its eager cost for two
-points (tests; ``CoilFieldTable`` vs ``EMNS.field_and_gradient``).
+(4e-11 and 2e-10 with 0.5 mm; relative, worst at 50 mm from the centre), at a fifth of its eager cost
+for two points (``scripts/report_field_table.py``, ``docs/field_table.md``; tests).
 
 Outside the ball the tables do not hold: :meth:`CoilFieldTable.unit_field_and_gradient` raises for such a
 point, and a compiled caller checks :meth:`CoilFieldTable.outside` afterwards.

@@ -74,7 +74,7 @@ def main(argv=None):
         run, latency = task.hook("run_scene"), task.hook("closed_loop_latency")
         t0 = time.perf_counter()
         run(engine, short)  # warm-up, and the field table
-        res["field_table_s"] = time.perf_counter() - t0
+        res["closed_loop_first_run_s"] = time.perf_counter() - t0  # the field table built in it
         wall_cl = run(engine, short)[1]
         wall_exact = run(engine, short, exact_field=True)[1]
         lat = latency(engine, short, n=n // 10)
