@@ -40,7 +40,8 @@ from .evaluate import from_rest, interest_slots, one_step
 
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
            "closed_loop_wrench", "nudged_free_running", "reference_run", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
-           "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "check_workspace"]
+           "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "closed_loop_program", "check_workspace",
+           "closed_loop_latency"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 # m: the ball over which the real-time closed loop tabulates the coil field: the six-coil eMNS's 50 mm workspace
@@ -331,15 +332,14 @@ def run_scene(engine, scene, duration: float | None = None, exact_field: bool = 
     time, the currents' evaluation included."""
     task = engine.task
     n = int(round((duration or scene.duration) / task.delta))
-    ref = initial_points(task, scene)[None]
-    hist = ref[:, None].expand(-1, engine.eta + 1, -1, -1).contiguous()
     if exact_field:
+        ref = initial_points(task, scene)[None]
         t0 = time.perf_counter()
-        fr = closed_loop(engine.model, task, scene.rod, scene.loads.field.emns, hist, scene.loads.field.currents,
-                         0, n, ref)
+        fr = closed_loop(engine.model, task, scene.rod, scene.loads.field.emns,
+                         ref[:, None].expand(-1, engine.eta + 1, -1, -1), scene.loads.field.currents, 0, n, ref)
         return torch.cat([ref, fr[0]]), time.perf_counter() - t0
-    field = field_table(scene.loads.field.emns)
-    step, args = _closed_loop_program(engine, scene, field, ref, hist)
+    step, args = closed_loop_program(engine, scene)
+    hist, ref = args[0], args[2]
     t0 = time.perf_counter()
     currents = currents_series(scene.loads.field.currents, n, task.delta).split(1)  # n of (1, C)
     out = [ref]
@@ -348,14 +348,18 @@ def run_scene(engine, scene, duration: float | None = None, exact_field: bool = 
         out.append(nxt)
     wall = time.perf_counter() - t0
     out = torch.cat(out)
-    check_workspace(task, scene.rod, field, out)
+    check_workspace(task, scene.rod, field_table(scene.loads.field.emns), out)
     return out, wall
 
 
-def _closed_loop_program(engine, scene, field: CoilFieldTable, ref: Tensor, hist: Tensor):
-    """The engine's closed-loop step for ``scene`` (eager, or compiled after ``engine.compile()``) and its
-    arguments (hist, zero currents, ref[, rest])."""
+def closed_loop_program(engine, scene) -> tuple:
+    """A controller's closed loop on ``scene``: ``step`` (:func:`closed_loop_step` in the tabulated field, eager,
+    or compiled after ``engine.compile()``) and its arguments ``[hist, currents, ref(, rest)]`` at rest in the
+    scene's initial shape (currents zero, (1, C) A); call ``hist, frame = step(hist, currents, *args[2:])``."""
+    field = field_table(scene.loads.field.emns)
+    ref = initial_points(engine.task, scene)[None]
     rest = engine.rest_accel(ref)
+    hist = ref[:, None].expand(-1, engine.eta + 1, -1, -1).contiguous()
     args = [hist, torch.zeros(1, scene.loads.field.emns.n_coils, dtype=torch.float64), ref] \
         + ([] if rest is None else [rest])
     step = engine.program(("closed_loop", scene.rod, field),
@@ -368,9 +372,7 @@ def closed_loop_latency(engine, scene, n: int = 500, warmup: int = 20) -> float:
     """Seconds per batch-1 closed-loop step (:func:`closed_loop_step`, compiled after ``engine.compile()``; the
     median of ``n`` timed steps from the scene's initial shape, with its currents given), the field and the
     wrench included: what a controller that sets the currents waits for."""
-    ref = initial_points(engine.task, scene)[None]
-    hist = ref[:, None].expand(-1, engine.eta + 1, -1, -1).contiguous()
-    step, args = _closed_loop_program(engine, scene, field_table(scene.loads.field.emns), ref, hist)
+    step, args = closed_loop_program(engine, scene)
     args[1] = currents_series(scene.loads.field.currents, 1, engine.task.delta)
     for _ in range(warmup):
         step(*args)
