@@ -30,8 +30,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from cmlearn.data.magnetic import (block_nodes, by_frames, currents_series, equivalent_forces, field_samples, linearised_field,
-                                   magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
+from cmlearn.data.magnetic import (block_nodes, by_frames, currents_series, equivalent_forces, field_samples,
+                                   linearised_field, magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
 from physics.magnetics.field_table import CoilFieldTable
@@ -297,10 +297,11 @@ def closed_loop_step(model, task, rod, field: CoilFieldTable, program: bool = Fa
     3)[, rest]) -> (the history moved on by one frame, that frame (B, n_tracked, 3))``: the magnets' node
     forces from the last frame in the tabulated ``field`` (its ball unchecked, so that the step compiles:
     :func:`run_scene` checks it afterwards), then the model's step (``program``: its compiled form); anchors
-    stay put."""
+    stay put. Tracks no gradients (inference)."""
     idx = model.idx_modeled
     block_nodes(rod)  # computed with tensors: cached here, outside a trace
 
+    @torch.no_grad()
     def step(hist: Tensor, I: Tensor, ref: Tensor, *rest: Tensor) -> tuple[Tensor, Tensor]:
         last = hist[:, -1]
         f = equivalent_forces(task, rod, last.double(), lambda c: field.field_and_gradient(c, I, check=False))
