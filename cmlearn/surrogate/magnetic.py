@@ -284,7 +284,7 @@ def initial_points(task, scene) -> Tensor:
 def field_table(emns) -> CoilFieldTable:
     """``emns``'s field tabulated over the ball of :data:`FIELD_TABLE_RADIUS` (a 1 mm grid, interpolated at order
     6: for the default eMNS within 2.6e-9 of the exact superposition and 1.5e-8 of its gradient over the
-    workspace, 8e-8 and 1.2e-6 at the ball's edge, relative), built once per eMNS (about 0.6 s), for the
+    workspace, 8e-8 and 1.2e-6 at the ball's edge, relative), built once per eMNS (0.3-0.6 s), for the
     real-time closed loop."""
     table = _TABLES.get(emns)
     if table is None:
