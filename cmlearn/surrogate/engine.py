@@ -31,6 +31,18 @@ from .checkpoint import CheckpointError, load_checkpoint
 __all__ = ["Surrogate", "SurrogateDivergence", "check_rollout"]
 
 
+def median_latency(call, n: int, warmup: int) -> float:
+    """Seconds per ``call()``: the median of ``n`` timed calls after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        call()
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - t0)
+    return sorted(times)[n // 2]
+
+
 class SurrogateDivergence(RuntimeError):
     """A free-running surrogate rollout went non-finite or left every shape the rod can take."""
 
@@ -136,9 +148,12 @@ class Surrogate:
         def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
             return model(h, w, r, program=True, rest=rest[0] if rest else None)
 
+        def make(program: bool):
+            return fn
+
         def step(hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
             args = [hist, wrench, ref] + ([] if rest is None else [rest])
-            return self.program(("step", model.symmetry_axes), lambda program: fn, args)(*args)
+            return self.program(("step", model.symmetry_axes), make, args)(*args)
 
         self._programs = {}
         self._step = step
@@ -216,12 +231,4 @@ class Surrogate:
             axes, wrench = self._symmetry(p0, wrench), wrench[:1]
         ref = hist[:, 0]
         with self.symmetric(axes):
-            for _ in range(warmup):
-                self.step(hist, wrench, ref)
-            times = []
-            for _ in range(n):
-                t0 = time.perf_counter()
-                self.step(hist, wrench, ref)
-                times.append(time.perf_counter() - t0)
-        times.sort()
-        return times[len(times) // 2]
+            return median_latency(lambda: self.step(hist, wrench, ref), n, warmup)

@@ -373,16 +373,10 @@ def closed_loop_latency(engine, scene, n: int = 500, warmup: int = 20) -> float:
     """Seconds per batch-1 closed-loop step (:func:`closed_loop_step`, compiled after ``engine.compile()``; the
     median of ``n`` timed steps from the scene's initial shape, with its currents given), the field and the
     wrench included: what a controller that sets the currents waits for."""
+    from .engine import median_latency
     step, args = closed_loop_program(engine, scene)
     args[1] = currents_series(scene.loads.field.currents, 1, engine.task.delta)
-    for _ in range(warmup):
-        step(*args)
-    times = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        step(*args)
-        times.append(time.perf_counter() - t0)
-    return sorted(times)[n // 2]
+    return median_latency(lambda: step(*args), n, warmup)
 
 
 def short_check(engine, scene_name: str, duration: float) -> dict:

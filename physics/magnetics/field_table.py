@@ -56,7 +56,7 @@ class CoilFieldTable(FieldModel):
                  z0: float, spacing: float, order: int, centre: Tensor, radius: float, currents: Tensor | None):
         self.origins, self.axes, self.group = origins, axes, group  # (C, 3), (C, 3), (C,)
         self.tables = tables  # (n_tables, Nz, Nrho, 6): f, g, rho f_rho, rho f_z, g_rho, g_z
-        self.z0, self.spacing, self.order = z0, spacing, order
+        self.spacing, self.order = spacing, order
         self.centre, self.radius, self.currents = centre, radius, currents
         self._first = torch.tensor([z0, -(order // 2) * spacing], dtype=_F64)  # the grid's first (z, rho) node
         self._flat = tables.reshape(tables.shape[0], -1, 6)  # (n_tables, Nz * Nrho, 6), z-major
