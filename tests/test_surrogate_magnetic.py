@@ -339,14 +339,19 @@ def test_planar_setup_moves_the_rod_in_its_plane_and_the_cosserat_model_follows(
     """The experiment's set-up (magnetic_rod_planar): in-plane fields at the field point, the rod steered in
     the x-z plane, the Cosserat baseline clamped the same way."""
     from cmlearn.surrogate.magnetic import base_pose
-    from physics.scenes_magnetic_rod import PLANAR_FIELD_POINT, planar_field_basis
+    from physics.scenes_magnetic_rod import PLANAR_FIELD_POINT, planar_field_basis, planar_setpoints
     task = get_task("magnetic_rod_planar")
     U = planar_field_basis()
     pt = torch.tensor([PLANAR_FIELD_POINT], dtype=torch.float64)
     B = torch.cat([eMNS().field(pt, u) for u in U])
     assert torch.allclose(B, torch.tensor([[1.0, 0, 0], [0, 0, 1.0]], dtype=torch.float64), atol=1e-6)  # per tesla
     assert torch.allclose(U[:, 1], U[:, 2]) and torch.allclose(U[:, 4], U[:, 5])  # mirror-symmetric currents
-    scene = replace(get_scene("magnetic_rod_planar"), duration=2.5)  # 0.5 s hold, 1.5 s move to 6 mT at 30 deg
+    # the printed profile's first move (to 6 mT at 30 deg) in 0.5 s instead of 1.5, then a 0.4 s hold: quasi-static
+    # at the end (measured: 0.11 deg from the static Cosserat pose)
+    base = get_scene("magnetic_rod_planar")
+    a = math.radians(30)
+    move = MinJerkCurrents(planar_setpoints([[0.0, 0.0], [6e-3 * math.cos(a), 6e-3 * math.sin(a)]]), (0.5,), (0.05, 0.4))
+    scene = replace(base, duration=0.95, loads=replace(base.loads, field=CoilField(eMNS(), move)))
     pts, _, _ = rollout(task, scene)
     assert float(pts[..., 1].abs().max()) < 1e-9  # nothing leaves the x-z plane
     _, R, _ = magnet_frames(task, scene.rod, pts[[0, -1]].double())
@@ -354,6 +359,6 @@ def test_planar_setup_moves_the_rod_in_its_plane_and_the_cosserat_model_follows(
     angle = torch.rad2deg(torch.atan2(e3[..., 2], e3[..., 0]))  # magnet axes from +x towards +z
     assert -30 < float(angle[0, 1]) < -25 and -26 < float(angle[0, 0]) < -20  # sagging at rest
     assert float((angle[1] - angle[0]).min()) > 3.0  # lifted towards the field
-    R_cos, _ = cosserat_orientations(scene.loads.field.currents, [0.0, 2.5], eMNS(), **base_pose(scene))
+    R_cos, _ = cosserat_orientations(scene.loads.field.currents, [0.0, scene.duration], eMNS(), **base_pose(scene))
     err = orientation_errors(R_cos, R).abs()
-    assert float(err[..., [0, 2]].max()) < 1e-6 and float(err[..., 1].max()) < 1.5, err  # a wrong clamp: > 20 deg
+    assert float(err[..., [0, 2]].max()) < 1e-6 and float(err[..., 1].max()) < 0.5, err  # a wrong clamp: > 20 deg
