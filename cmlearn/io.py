@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import BinaryIO, Callable
 
-__all__ = ["atomic_write", "write_text_atomic", "CheckpointError"]
+__all__ = ["atomic_write", "write_text_atomic", "save_torch_atomic", "CheckpointError"]
 
 
 class CheckpointError(ValueError):
@@ -36,3 +36,9 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
     return atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def save_torch_atomic(path: str | Path, obj) -> Path:
+    """``torch.save(obj)`` to ``path`` atomically."""
+    import torch
+    return atomic_write(path, lambda f: torch.save(obj, f))

@@ -52,7 +52,7 @@ def cases(task, meta: dict, data_dir: str):
     out = [("seen_last40", pos, node_wrench(data["wrench"][0], dm["wrench_nodes"], dm["modeled"]), cut)]
     eta = meta["architecture"]["eta"]
     for name in task.heldout:
-        out.append((name, *heldout_case(task, name, eta, args["duration"])[:2], eta))
+        out.append((name, *heldout_case(task, name, eta, args["duration"], data_dir)[:2], eta))
     return out
 
 

@@ -29,7 +29,8 @@ from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.evaluate import from_rest
-from cmlearn.surrogate.magnetic import nudged_free_running, orientation_errors, orientation_stats, reference_run
+from cmlearn.surrogate.magnetic import nudged_free_running, orientation_errors, orientation_stats
+from cmlearn.data.generate import reference_rollout
 
 
 def six_sum(stats: dict) -> float:
@@ -40,7 +41,8 @@ def cases(task, duration: float | None, data_dir: str):
     """(label, scene, LGVI points, wrench inputs, whether it is the printed profile) per profile of ``task``."""
     for name in (task.scene, *task.heldout):
         scene = task.scene_by_name(name)
-        pts, W, _ = reference_run(task, name, duration, data_dir)
+        pts, W, _ = reference_rollout(task, name, duration, data_dir)
+        pts, W = pts.float(), W.float()
         label = f"{name} (last 40 %)" if name == task.scene else name
         yield label, replace(scene, duration=duration or scene.duration), pts, W, name == task.scene
 

@@ -106,7 +106,7 @@ def main(argv=None) -> dict:
         ap.error(f"--after {a.after} s leaves nothing of the {n_steps * task.delta:g} s run")
     aspects = data["meta"]["variants"]["aspect_h_over_w"]
     labels = [f"{'printed' if v == 0 else 'training'}, h/w {aspects[v]:.2f}" for v in range(a.variants)]
-    held, _, _ = heldout_case(task, task.heldout[0], 0, a.duration or None)
+    held, _, _ = heldout_case(task, task.heldout[0], 0, a.duration or None, a.data_dir)
     rows = loop_rows(models, data["positions"], task.delta, a.after, slot)
     rows += loop_rows(models, held[None], task.delta, a.after, slot)
     res = {"circle_drift_mm": {n: circle_drift(m, task, n_steps) for n, m in models.items()},

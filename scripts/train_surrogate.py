@@ -92,7 +92,7 @@ class Args:
     select_steps: int = opt(0, "steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)")
     keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)")
     threads: int = opt(2, "torch CPU threads")
-    data_dir: str = opt("data", "where datasets are generated and cached")
+    data_dir: str = opt("data", "where datasets and the LGVI runs of the evaluated scenes are generated and cached")
     out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)")
     log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints")
     resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues")
@@ -223,7 +223,7 @@ def evaluate_all(model, task, data: dict, a: Args) -> dict:
     cut = split_ranges(meta["n_variants"], pos.shape[0])["test"][0][1]
     metrics = {"seen_last40": evaluate(model, pos, wr, cut, slots, L)}
     for name in task.heldout:
-        p, Wk, wall = heldout_case(task, name, a.eta, a.duration)
+        p, Wk, wall = heldout_case(task, name, a.eta, a.duration, a.data_dir)
         metrics[name] = evaluate(model, p, Wk, a.eta, interest_slots(task, task.scene_by_name(name)), L)
         metrics[name]["lgvi_wall_s"] = wall
     return metrics
@@ -332,7 +332,8 @@ def main(argv=None):
     from cmlearn.surrogate.evaluate import short_check
     # 50 surrogate steps: short enough that even an unstable rollout is reproducible bit for bit
     try:
-        meta["check"] = short_check(Surrogate(model, meta), task.scene, min(50 * task.delta, a.duration or 1.0))
+        meta["check"] = short_check(Surrogate(model, meta), task.scene, min(50 * task.delta, a.duration or 1.0),
+                                    a.data_dir)
     except SurrogateDivergence as e:  # still written, for study; it cannot pass as a shipped checkpoint
         meta["check"] = {"diverged": str(e)}
         print(f"warning: {e}", file=sys.stderr)

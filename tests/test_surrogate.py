@@ -738,6 +738,8 @@ def test_loading_a_checkpoint_needs_no_lightning(tmp_path):
 
 
 def test_shipped_checkpoints_exist_and_reproduce_their_recorded_check():
+    """Every shipped surrogate has its metadata; each reproduces its recorded check here but the magnetic rod's,
+    which tests/test_surrogate_magnetic.py reproduces with its orientation error."""
     assert SHIPPED, "no shipped checkpoints in checkpoints/"
     for path in SHIPPED:
         assert path.stat().st_size < 3e6
@@ -746,6 +748,8 @@ def test_shipped_checkpoints_exist_and_reproduce_their_recorded_check():
         for key in ("architecture", "task", "scene", "data_hash", "metrics", "command", "check"):
             assert key in meta, (path.name, key)
         chk = meta["check"]
+        if path.name == "magnetic_rod.pt":
+            continue
         got = short_check(engine, chk["scene"], chk["duration"])
         assert got["max_err_mm"] == pytest.approx(chk["max_err_mm"], rel=1e-3, abs=1e-3), path.name
 

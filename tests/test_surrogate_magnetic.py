@@ -144,15 +144,24 @@ def test_tiny_dataset_holds_the_markers_and_the_wrench(tmp_path):
                        whole)
 
 
-def test_reference_run_cache_follows_the_task_step(tmp_path):
-    """The cached LGVI reference of a held-out profile is recomputed for a task sampled at another step."""
-    from cmlearn.surrogate.magnetic import reference_run
+def test_reference_rollout_is_cached_while_it_fits(tmp_path):
+    """The LGVI reference of a held-out profile is served from ``data_dir`` (its recorded wall time too) while it
+    fits; it is run again for a task sampled at another step and for a file that fails its hash."""
+    from cmlearn.data import reference_rollout
     name = TASK.heldout[0]
-    fine = reference_run(TASK, name, 0.04, tmp_path)[0]
-    assert fine.shape == (int(round(0.04 / TASK.delta)) + 1, 11, 3)
-    assert torch.equal(reference_run(TASK, name, 0.04, tmp_path)[0], fine)  # served from the cache
-    coarse = reference_run(replace(TASK, delta=2 * TASK.delta), name, 0.04, tmp_path)[0]
+    fine, W, wall = reference_rollout(TASK, name, 0.04, tmp_path)
+    assert fine.shape == (int(round(0.04 / TASK.delta)) + 1, 11, 3) and W.shape[0] == fine.shape[0] - 1
+    path = tmp_path / f"{TASK.name}_{name}_0.04s_ref.pt"
+    again = reference_rollout(TASK, name, 0.04, tmp_path)
+    assert torch.equal(again[0], fine) and torch.equal(again[1], W) and again[2] == wall  # served from the cache
+    coarse = reference_rollout(replace(TASK, delta=2 * TASK.delta), name, 0.04, tmp_path)[0]
     assert torch.equal(coarse, fine[::2])
+    fine_again = reference_rollout(TASK, name, 0.04, tmp_path)  # the file held the coarse run: made again
+    assert torch.equal(fine_again[0], fine) and fine_again[2] != wall
+    blob = torch.load(path, weights_only=True)
+    blob["positions"][-1] += 1e-3
+    torch.save(blob, path)
+    assert torch.equal(reference_rollout(TASK, name, 0.04, tmp_path)[0], fine)
 
 
 def test_scene_rollout_runs_the_rod_as_its_module_does():
@@ -174,11 +183,13 @@ def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recor
     from cmlearn.data.windows import node_wrench
     from cmlearn.surrogate import load_checkpoint
     from cmlearn.surrogate.evaluate import from_rest
-    from cmlearn.surrogate.magnetic import _case, nudged_free_running, reference_run
+    from cmlearn.data import reference_rollout
+    from cmlearn.surrogate.magnetic import _case, nudged_free_running
     model, _ = load_checkpoint(ROOT / "checkpoints" / "magnetic_rod.pt", task="magnetic_rod")
     name, eta = TASK.heldout[0], model.config.eta
     scene = replace(TASK.scene_by_name(name), duration=0.3)
-    p, W, _ = reference_run(TASK, name, 0.3, tmp_path)
+    p, W, _ = reference_rollout(TASK, name, 0.3, tmp_path)
+    p, W = p.float(), W.float()
     ph, Wh = from_rest(p, node_wrench(W, TASK.wrench_nodes, TASK.modeled), eta)
     case = _case(model, TASK, scene, ph, Wh, eta, pad=eta, cosserat=False, nudged=3)
     free = case["orientation_deg"]["free_running"]

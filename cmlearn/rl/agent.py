@@ -20,7 +20,6 @@ memoryless greedy policy can fall into.
 """
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
+from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, IQNNetwork
 
 from .env import ACTIONS
@@ -44,9 +43,7 @@ def save_agent(path: str | Path, network: IQNNetwork, meta: dict) -> Path:
     meta = json.loads(json.dumps(meta, default=str))
     state = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
     blob = {"format": AGENT_FORMAT, "config": network.config.to_dict(), "state_dict": state, "meta": meta}
-    buf = io.BytesIO()
-    torch.save(blob, buf)
-    atomic_write(path, lambda f: f.write(buf.getvalue()))
+    save_torch_atomic(path, blob)
     write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2) + "\n")
     return path
 

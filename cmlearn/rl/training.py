@@ -36,7 +36,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from cmlearn.io import atomic_write, write_text_atomic
+from cmlearn.io import save_torch_atomic, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, find_iqn_network, make_iqn_actor
 
 from .agent import IQNAgent, save_agent
@@ -217,10 +217,7 @@ def make_replay_buffer(cfg: AgentTrainConfig):
 
 
 def _save_train_state(path: Path, state: dict) -> None:
-    import io
-    buf = io.BytesIO()
-    torch.save(state, buf)
-    atomic_write(path, lambda f: f.write(buf.getvalue()))
+    save_torch_atomic(path, state)
 
 
 def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callable[[str], None] = print,

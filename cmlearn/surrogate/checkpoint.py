@@ -9,13 +9,12 @@ with a JSON copy of ``meta`` next to it (``<name>.json``) for humans and tools.
 """
 from __future__ import annotations
 
-import io
 import json
 from pathlib import Path
 
 import torch
 
-from cmlearn.io import CheckpointError, atomic_write, write_text_atomic
+from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
 __all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "surrogate_checkpoints"]
@@ -29,9 +28,7 @@ def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> P
     meta = json.loads(json.dumps(meta, default=str))  # plain types only: loadable with weights_only=True
     blob = {"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta}
-    buf = io.BytesIO()
-    torch.save(blob, buf)
-    atomic_write(path, lambda f: f.write(buf.getvalue()))
+    save_torch_atomic(path, blob)
     write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2, default=str) + "\n")
     return path
 

@@ -48,15 +48,14 @@ def from_rest(positions: Tensor, wrench: Tensor, eta: int) -> tuple[Tensor, Tens
             torch.cat([wrench.new_zeros(eta, *wrench.shape[1:]), wrench], 0))
 
 
-def heldout_case(task, name: str, eta: int, duration: float | None = None) -> tuple[Tensor, Tensor, float]:
-    """A held-out scene of ``task`` simulated by the LGVI (for ``duration`` if given), as the modelled
-    nodes' wrench and the tracked positions from rest (``from_rest``), with the LGVI wall time."""
-    from dataclasses import replace
-
-    from cmlearn.data import scene_rollout
+def heldout_case(task, name: str, eta: int, duration: float | None = None,
+                 data_dir=None) -> tuple[Tensor, Tensor, float]:
+    """A held-out scene of ``task`` simulated by the LGVI (for ``duration`` if given; cached in ``data_dir`` if
+    given, :func:`cmlearn.data.reference_rollout`), as the modelled nodes' wrench and the tracked positions from
+    rest (``from_rest``), with the LGVI wall time."""
+    from cmlearn.data import reference_rollout
     from cmlearn.data.windows import node_wrench
-    scene = task.scene_by_name(name)
-    p, W, wall = scene_rollout(task, replace(scene, duration=duration) if duration else scene)
+    p, W, wall = reference_rollout(task, name, duration, data_dir)
     return (*from_rest(p, node_wrench(W.float(), task.wrench_nodes, task.modeled), eta), wall)
 
 
@@ -120,18 +119,19 @@ def evaluate(model, positions: Tensor, wrench: Tensor, start: int, slots, length
     return out
 
 
-def short_check(engine, scene_name: str, duration: float) -> dict:
+def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict:
     """Free-running surrogate against the LGVI on the first ``duration`` seconds of a scene: the
-    headline node's maximum error (mm). Shipped with each checkpoint so that a test can reproduce it."""
+    headline node's maximum error (mm). Shipped with each checkpoint so that a test can reproduce it. The
+    LGVI's run is cached in ``data_dir`` if given (:func:`cmlearn.data.reference_rollout`)."""
     from dataclasses import replace
 
-    from cmlearn.data.generate import scene_rollout
+    from cmlearn.data.generate import reference_rollout
 
     task = engine.task
     if task.custom:
-        return task.hook("short_check")(engine, scene_name, duration)
+        return task.hook("short_check")(engine, scene_name, duration, data_dir)
     scene = replace(task.scene_by_name(scene_name), duration=duration)
-    ref, _, _ = scene_rollout(task, scene)
+    ref, _, _ = reference_rollout(task, scene_name, duration, data_dir)
     pred, _ = engine.run_scene(scene)
     slot = interest_slots(task, scene)[0]
     return {"scene": scene_name, "duration": duration,

@@ -32,14 +32,16 @@ from torch import Tensor
 
 from cmlearn.data.magnetic import (block_nodes, by_frames, currents_series, equivalent_forces, field_samples,
                                    linearised_field, magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
+from cmlearn.data.generate import reference_rollout
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
+from cmlearn.io import save_torch_atomic
 from physics.magnetics.field_table import CoilFieldTable
 
 from .evaluate import from_rest, interest_slots, one_step
 
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
-           "closed_loop_wrench", "nudged_free_running", "reference_run", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
+           "closed_loop_wrench", "nudged_free_running", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
            "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "closed_loop_program", "check_workspace",
            "closed_loop_latency"]
 
@@ -193,12 +195,7 @@ def cached_cosserat(task, scene, times, data_dir: str | Path | None):
             return blob["R"], float(blob["wall_s"])
     R, wall = cosserat_orientations(scene.loads.field.currents, times, scene.loads.field.emns, **base_pose(scene))
     if path is not None:
-        import io
-
-        from cmlearn.io import atomic_write
-        buf = io.BytesIO()
-        torch.save({"R": R, "wall_s": wall}, buf)
-        atomic_write(path, lambda f: f.write(buf.getvalue()))
+        save_torch_atomic(path, {"R": R, "wall_s": wall})
     return R, wall
 
 
@@ -228,28 +225,6 @@ def _case(model, task, scene, pos: Tensor, wr: Tensor, start: int, pad: int = 0,
     return out
 
 
-def reference_run(task, name: str, duration: float | None, data_dir: str | Path):
-    """LGVI run of the task's scene ``name`` (the printed or a held-out one): tracked points, wrench inputs and wall
-    time, cached in ``data_dir`` (it takes minutes)."""
-    from cmlearn.data.generate import data_hash
-    scene = task.scene_by_name(name)
-    d = duration or scene.duration
-    path = Path(data_dir) / f"{task.name}_{name}_{d:g}s_ref.pt"
-    if path.exists():
-        blob = torch.load(path, weights_only=True)
-        fits = blob["points"].shape[:2] == (int(round(d / task.delta)) + 1, len(task.tracked))  # step, node set
-        if fits and data_hash(blob["points"], blob["wrench"]) == blob["hash"]:
-            return blob["points"], blob["wrench"], blob["lgvi_wall_s"]
-    pts, W, wall = rollout(task, scene, duration=d)
-    pts, W = pts.float(), W.float()
-    from cmlearn.io import atomic_write
-    import io
-    buf = io.BytesIO()
-    torch.save({"points": pts, "wrench": W, "lgvi_wall_s": wall, "hash": data_hash(pts, W)}, buf)
-    atomic_write(path, lambda f: f.write(buf.getvalue()))
-    return pts, W, wall
-
-
 def evaluate(model, task, data: dict, args) -> dict:
     """Metrics stored with a checkpoint: the printed scene's last 40 % (true history at the cut) and the
     held-out scenes from rest, surrogate one-step and free-running (closed loop), the free-running spread over
@@ -267,7 +242,8 @@ def evaluate(model, task, data: dict, args) -> dict:
     eta = model.config.eta
     for name in task.heldout:
         held = task.scene_by_name(name)
-        p, W, wall = reference_run(task, name, duration, getattr(args, "data_dir", "data"))
+        p, W, wall = reference_rollout(task, name, duration, getattr(args, "data_dir", "data"))
+        p, W = p.float(), W.float()
         Wk = node_wrench(W, task.wrench_nodes, task.modeled)
         p_hist, W_hist = from_rest(p, Wk, eta)
         metrics[name] = _case(model, task, replace(held, duration=duration or held.duration), p_hist, W_hist, eta,
@@ -379,12 +355,12 @@ def closed_loop_latency(engine, scene, n: int = 500, warmup: int = 20) -> float:
     return median_latency(lambda: step(*args), n, warmup)
 
 
-def short_check(engine, scene_name: str, duration: float) -> dict:
+def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict:
     """Closed-loop surrogate against the LGVI for the first ``duration`` s: the tip's maximum position
-    error (mm) and the largest magnet orientation error (deg)."""
+    error (mm) and the largest magnet orientation error (deg). The LGVI's run is cached in ``data_dir`` if given."""
     task = engine.task
     scene = replace(task.scene_by_name(scene_name), duration=duration)
-    ref, _, _ = rollout(task, scene)
+    ref = reference_rollout(task, scene_name, duration, data_dir)[0]
     pred, _ = engine.run_scene(scene)
     slot = interest_slots(task, scene)[0]
     err = orientation_errors(magnet_frames(task, scene.rod, pred.double())[1],
