@@ -24,13 +24,13 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.data.generate import reference_rollout
 from cmlearn.data.magnetic import magnet_frames, rollout
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.evaluate import from_rest
 from cmlearn.surrogate.magnetic import nudged_free_running, orientation_errors, orientation_stats
-from cmlearn.data.generate import reference_rollout
 
 
 def six_sum(stats: dict) -> float:

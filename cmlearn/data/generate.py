@@ -89,8 +89,9 @@ def reference_rollout(task: SurrogateTask, name: str, duration: float | None = N
     """:func:`scene_rollout` of the task's scene ``name`` (the printed or a held-out one) for ``duration`` s (the
     scene's own where None): tracked positions, wrench inputs and the LGVI's wall time. With ``data_dir`` the run
     is cached there as ``<task>_<name>_<duration>s_ref.pt`` and read back (wall time included: the one measured
-    when it was made) while it fits the task's step and node sets, this library version and its hash; evaluations
-    of held-out scenes repeat these runs, which take minutes at full length."""
+    when it was made) while it fits the task's step and node sets, this library version and its hash (as with
+    datasets, a scene whose definition changed needs its file removed); evaluations of held-out scenes repeat these
+    runs, which take minutes at full length."""
     from dataclasses import replace
     scene = task.scene_by_name(name)
     d = float(duration or scene.duration)

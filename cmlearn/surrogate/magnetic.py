@@ -30,9 +30,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from cmlearn.data.generate import reference_rollout
 from cmlearn.data.magnetic import (block_nodes, by_frames, currents_series, equivalent_forces, field_samples,
                                    linearised_field, magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
-from cmlearn.data.generate import reference_rollout
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
 from cmlearn.io import save_torch_atomic
