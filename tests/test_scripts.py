@@ -162,9 +162,12 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     src, ft = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("ck.pt", "ft.pt"))
     assert src.keys() == ft.keys() and all(torch.equal(src[k], ft[k]) for k in src)
     ft_meta = json.loads((tmp_path / "ft.json").read_text())
-    for case in rep["cases"]:  # the same errors (the LGVI's wall time aside)
+    for case in rep["cases"]:  # the same errors
         assert {m: ft_meta["metrics"][case][m] for m in ("one_step", "free_running")} == \
             {m: meta["metrics"][case][m] for m in ("one_step", "free_running")}
+    # the held-out scene's LGVI run was read from data/, made by the first run: its wall time too
+    assert (tmp_path / "data" / "semicircle_semicircle_heldout_0.3s_ref.pt").exists()
+    assert ft_meta["metrics"]["semicircle_heldout"]["lgvi_wall_s"] == meta["metrics"]["semicircle_heldout"]["lgvi_wall_s"]
     assert "--init-from ck.pt" in ft_meta["command"] and ft_meta["init_from"]["command"] == meta["command"]
     # the starting weights were validated first: at lr 0 the one epoch scores exactly as they do
     ep = [r for r in csv.DictReader(next((tmp_path / "logs_ft").rglob("metrics.csv")).open()) if r.get("val_loss")]
