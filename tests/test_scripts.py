@@ -412,13 +412,17 @@ def test_free_running_spread_report_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/report_free_running_spread.py"), "--checkpoints",
                       str(ROOT / "checkpoints/magnetic_rod.pt"), "--duration", "0.3", "--starts", "2",
                       "--lgvi-eps", "1e-6", "--data-dir", str(tmp_path), "--out", "spread.md"], tmp_path)
-    assert "| magnetic_rod_heldout | magnetic_rod.pt |" in (tmp_path / "spread.md").read_text()
+    text = (tmp_path / "spread.md").read_text()
+    assert "| magnetic_rod_heldout | magnetic_rod.pt |" in text and "open loop (the LGVI's wrench)" in text
     assert [r["case"] for r in res["rows"]] == ["magnetic_rod (last 40 %)", "magnetic_rod_heldout"]
     for row in res["rows"]:
         m = row["models"]["magnetic_rod.pt"]
         assert m["single"] > 0 and len(m["nudged"]["1e-08"]["sum_mean_deg"]) == 2
-        # no snap-through within 0.3 s: nudges of 1e-8 m and currents changed by 1e-6 change (almost) nothing
+        # no snap-through within 0.3 s: nudges of 1e-8 m and currents changed by 1e-6 change (almost) nothing,
+        # and the LGVI's wrench (open loop) is nearly the model's own
         assert max(abs(s - m["single"]) for s in m["nudged"]["1e-08"]["sum_mean_deg"]) < 1e-3
+        assert len(m["open_loop"]["sum_mean_deg"]) == 2 and m["open_loop"]["sigma_m"] == 1e-8
+        assert max(abs(s - m["single"]) for s in m["open_loop"]["sum_mean_deg"]) < 0.1
         assert row["lgvi"]["runs"]["1e-06"]["max_deg"] < 1e-3
     script_fails([str(ROOT / "scripts/report_free_running_spread.py"), "--checkpoints",
                   str(ROOT / "checkpoints/semicircle.pt")], tmp_path, "--checkpoints")

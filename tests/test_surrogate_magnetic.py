@@ -180,7 +180,8 @@ def test_scene_rollout_runs_the_rod_as_its_module_does():
 
 def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recorded_run(tmp_path):
     """nudged_free_running: one unnudged start is exactly the free-running run the metrics record; unnudged
-    copies in a batch agree with each other; nudged ones differ, here (no snap-through in 0.3 s) by little."""
+    copies in a batch agree with each other; nudged ones differ, here (no snap-through in 0.3 s) by little; open
+    loop (``wrench``) steps with the recorded wrench of each frame."""
     from cmlearn.data.windows import node_wrench
     from cmlearn.surrogate import load_checkpoint
     from cmlearn.surrogate.evaluate import from_rest
@@ -204,6 +205,18 @@ def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recor
     spread = case["free_running_nudged"]
     assert spread["n"] == 3 and spread["sigma_m"] == 1e-8 and len(set(spread["sum_mean_deg"])) == 3
     assert max(abs(s - recorded) for s in spread["sum_mean_deg"]) < 1e-3
+    # open loop, fed the LGVI's wrench: its first step is the one-step prediction (same history and wrench) ...
+    k = 12
+    assert float((Wh[k + 1] - Wh[k]).abs().max()) > 0 and float((Wh[k] - Wh[k - 1]).abs().max()) > 0
+    first = _case(model, TASK, scene, ph[:k + 2], Wh[:k + 1], k, pad=eta, cosserat=False, nudged=0)
+    one_step = sum(first["orientation_deg"]["one_step"][m][ax]["mean_deg"] for m in ("distal", "proximal") for ax in "xyz")
+    opened = nudged_free_running(model, TASK, scene, ph[:k + 2], k, eta, n=1, sigma=0.0, wrench=Wh[:k + 1])
+    assert opened["sum_mean_deg"] == [pytest.approx(one_step, rel=1e-9)]
+    # ... and over 0.3 s, with no snap-through, it stays near the closed loop without being it
+    whole = nudged_free_running(model, TASK, scene, ph, eta, eta, n=1, sigma=0.0, wrench=Wh)["sum_mean_deg"][0]
+    assert whole != recorded and abs(whole - recorded) < 0.1
+    with pytest.raises(ValueError, match="wrench must hold"):
+        nudged_free_running(model, TASK, scene, ph, eta, eta, wrench=Wh[:-1])
     with pytest.raises(ValueError, match="sigma"):
         nudged_free_running(model, TASK, scene, ph, eta, eta, sigma=-1.0)
     with pytest.raises(ValueError, match="n must"):

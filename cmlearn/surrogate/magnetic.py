@@ -82,12 +82,14 @@ def closed_loop(model, task, rod, emns, hist: Tensor, currents, k0: int, n_steps
 
 @torch.no_grad()
 def nudged_free_running(model, task, scene, pos: Tensor, start: int, pad: int = 0, n: int = 16,
-                        sigma: float = 1e-8, seed: int = 0) -> dict:
+                        sigma: float = 1e-8, seed: int = 0, wrench: Tensor | None = None) -> dict:
     """Closed-loop free-running orientation errors from ``n`` copies of the true history at frame ``start`` of
     ``pos`` (T, n_tracked, 3; its first ``pad`` frames before t = 0), each modelled point nudged by N(0, sigma^2)
     m (float32 rounding of these coordinates is ~1e-8 m), run as one batch. Returns, per start, the sum of the
     six mean absolute errors (deg), and per magnet and axis the mean over starts of the mean error and the
-    largest maximum: the spread of a free-running figure whose rollout passes the rod's snap-throughs."""
+    largest maximum: the spread of a free-running figure whose rollout passes the rod's snap-throughs.
+    ``wrench``: the modelled nodes' forces (T-1, K, 3) of ``pos``'s steps, as in the data; where given they drive
+    the rollout instead of the closed loop (open loop: the wrench of the LGVI's own poses)."""
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"n must be a positive number of starts, got {n!r}")
     if not (math.isfinite(sigma) and sigma >= 0):
@@ -97,9 +99,14 @@ def nudged_free_running(model, task, scene, pos: Tensor, start: int, pad: int = 
     g = torch.Generator().manual_seed(seed)
     idx = model.idx_modeled
     hist[:, :, idx] += sigma * torch.randn(hist[:, :, idx].shape, generator=g)
-    rod = scene.rod
-    pred = closed_loop(model, task, rod, scene.loads.field.emns, hist, scene.loads.field.currents, start - pad,
-                       pos.shape[0] - 1 - start, pos[:1].float().expand(n, -1, -1))
+    rod, H, ref = scene.rod, pos.shape[0] - 1 - start, pos[:1].float().expand(n, -1, -1)
+    if wrench is None:
+        pred = closed_loop(model, task, rod, scene.loads.field.emns, hist, scene.loads.field.currents, start - pad,
+                           H, ref)
+    else:
+        if wrench.shape[0] != pos.shape[0] - 1:
+            raise ValueError(f"wrench must hold one step per interval of pos ({pos.shape[0] - 1}), got {wrench.shape[0]}")
+        pred = model.rollout(hist, wrench[None, start:].float().expand(n, -1, -1, -1), ref)
     _, R_ref, _ = magnet_frames(task, rod, pos[start + 1:].double())
     err = orientation_errors(magnet_frames(task, rod, pred.double())[1], R_ref).abs()  # (n, T, K, 3)
     mean, mx = err.mean(1), err.amax(1)  # (n, K, 3)
