@@ -182,10 +182,10 @@ def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recor
     """nudged_free_running: one unnudged start is exactly the free-running run the metrics record; unnudged
     copies in a batch agree with each other; nudged ones differ, here (no snap-through in 0.3 s) by little; open
     loop (``wrench``) steps with the recorded wrench of each frame."""
+    from cmlearn.data import reference_rollout
     from cmlearn.data.windows import node_wrench
     from cmlearn.surrogate import load_checkpoint
     from cmlearn.surrogate.evaluate import from_rest
-    from cmlearn.data import reference_rollout
     from cmlearn.surrogate.magnetic import _case, nudged_free_running
     model, _ = load_checkpoint(ROOT / "checkpoints" / "magnetic_rod.pt", task="magnetic_rod")
     name, eta = TASK.heldout[0], model.config.eta
