@@ -21,41 +21,19 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from cmlearn.data.generate import reference_rollout
 from cmlearn.data.magnetic import magnet_frames, rollout
-from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate
-from cmlearn.surrogate.evaluate import from_rest
-from cmlearn.surrogate.magnetic import nudged_free_running, orientation_errors, orientation_stats
+from cmlearn.surrogate.magnetic import (nudged_free_running, orientation_errors, orientation_stats, profile_start,
+                                       reference_profiles)
 
 
 def six_sum(stats: dict) -> float:
     return sum(stats[m][ax]["mean_deg"] for m in ("distal", "proximal") for ax in "xyz")
-
-
-def cases(task, duration: float | None, data_dir: str):
-    """(label, scene, LGVI points, wrench inputs, whether it is the printed profile) per profile of ``task``."""
-    for name in (task.scene, *task.heldout):
-        scene = task.scene_by_name(name)
-        pts, W, _ = reference_rollout(task, name, duration, data_dir)
-        pts, W = pts.float(), W.float()
-        label = f"{name} (last 40 %)" if name == task.scene else name
-        yield label, replace(scene, duration=duration or scene.duration), pts, W, name == task.scene
-
-
-def start_of(task, pts, W, eta: int, printed: bool):
-    """(points, the modelled nodes' wrench of their steps, start, pad): the printed profile from its 60 % cut
-    (:func:`split_ranges`), a held-out one from rest (``eta`` rest frames before t = 0)."""
-    Wk = node_wrench(W, task.wrench_nodes, task.modeled)
-    if printed:
-        return pts, Wk, split_ranges(1, pts.shape[0])["test"][0][1], 0
-    return *from_rest(pts, Wk, eta), eta, eta
 
 
 def lgvi_spread(task, scene, pts, eps: list[float]) -> dict:
@@ -94,11 +72,11 @@ def main(argv=None):
         raise SystemExit(f"--checkpoints: give checkpoints of one magnetic-rod task, not {sorted(tasks)}")
     task = next(iter(engines.values())).task
     rows = []
-    for label, scene, pts, W, printed in cases(task, a.duration or None, a.data_dir):
+    for label, scene, pts, W, printed in reference_profiles(task, a.duration or None, a.data_dir):
         row = {"case": label, "models": {}}
         for name, eng in engines.items():
             model = eng.model
-            p, Wk, s, pad = start_of(task, pts, W, model.config.eta, printed)
+            p, Wk, s, pad = profile_start(task, pts, W, model.config.eta, printed)
             one = nudged_free_running(model, task, scene, p, s, pad, n=1, sigma=0.0)["sum_mean_deg"][0]
             row["models"][name] = {"single": one, "nudged": {
                 f"{sig:g}": nudged_free_running(model, task, scene, p, s, pad, n=a.starts, sigma=sig) for sig in a.sigmas},

@@ -43,7 +43,7 @@ from .evaluate import from_rest, interest_slots, one_step
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
            "closed_loop_wrench", "nudged_free_running", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
            "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "closed_loop_program", "check_workspace",
-           "closed_loop_latency"]
+           "closed_loop_latency", "reference_profiles", "profile_start"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 # m: the ball over which the real-time closed loop tabulates the coil field: the six-coil eMNS's 50 mm workspace
@@ -51,6 +51,26 @@ MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 # error, 5 mm short of the coils' faces
 FIELD_TABLE_RADIUS = 0.06
 _TABLES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # field_table's, per eMNS
+
+
+def reference_profiles(task, duration: float | None, data_dir: str | Path | None):
+    """(label, scene, LGVI points, wrench inputs, whether it is the printed profile) per profile of ``task``: the
+    printed one, then the held-out ones, each the LGVI's run (:func:`reference_rollout`, cached in ``data_dir``)."""
+    for name in (task.scene, *task.heldout):
+        scene = task.scene_by_name(name)
+        pts, W, _ = reference_rollout(task, name, duration, data_dir)
+        label = f"{name} (last 40 %)" if name == task.scene else name
+        yield label, replace(scene, duration=duration or scene.duration), pts.float(), W.float(), name == task.scene
+
+
+def profile_start(task, pts: Tensor, W: Tensor, eta: int, printed: bool) -> tuple[Tensor, Tensor, int, int]:
+    """(points, the modelled nodes' wrench of their steps, start, pad) of a :func:`reference_profiles` case: the
+    printed profile from its 60 % cut (:func:`split_ranges`), a held-out one from rest (``eta`` rest frames
+    before t = 0, :func:`from_rest`)."""
+    Wk = node_wrench(W, task.wrench_nodes, task.modeled)
+    if printed:
+        return pts, Wk, split_ranges(1, pts.shape[0])["test"][0][1], 0
+    return *from_rest(pts, Wk, eta), eta, eta
 
 
 def orientation_errors(R_pred: Tensor, R_ref: Tensor) -> Tensor:
