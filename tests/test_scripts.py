@@ -428,6 +428,37 @@ def test_free_running_spread_report_quick(tmp_path):
                   str(ROOT / "checkpoints/semicircle.pt")], tmp_path, "--checkpoints")
 
 
+def test_step_baselines_report_quick(tmp_path):
+    from cmlearn.data import get_task, reference_rollout
+    from cmlearn.data.magnetic import magnet_frames
+    from cmlearn.data.windows import split_ranges
+    from cmlearn.surrogate.magnetic import orientation_errors
+    res = run_script([str(ROOT / "scripts/report_step_baselines.py"), "--checkpoints", str(ROOT / "checkpoints/magnetic_rod.pt"),
+                      "--duration", "0.3", "--variants", "2", "--data-dir", str(tmp_path), "--out", "base.md"], tmp_path)
+    assert "| magnetic_rod_heldout | linear, global |" in (tmp_path / "base.md").read_text()
+    assert [r["case"] for r in res["rows"]] == ["magnetic_rod (last 40 %)", "magnetic_rod_heldout"]
+    task = get_task("magnetic_rod")
+    for row, name in zip(res["rows"], ("magnetic_rod", "magnetic_rod_heldout")):
+        models = row["models"]
+        assert list(models) == ["magnetic_rod.pt", "constant velocity", "linear, local", "linear, global"]
+        assert "closed_loop" in models["magnetic_rod.pt"] and "closed_loop" not in models["linear, local"]
+        # the constant-velocity step by hand, on the LGVI run the report cached: p(t+1) = 2 p(t) - p(t-1)
+        p, _, _ = reference_rollout(task, name, 0.3, tmp_path)
+        p = p.double()
+        if name == "magnetic_rod":
+            s = split_ranges(1, p.shape[0])["test"][0][1]
+        else:  # from rest: the frame before t = 0 is the rest frame itself
+            p, s = torch.cat([p[:1], p]), 1
+        cv = p[s + 1:].clone()
+        cv[:, 1:] = (2 * p[s:-1] - p[s - 1:-2])[:, 1:]
+        rod = task.base_scene().rod
+        err = orientation_errors(magnet_frames(task, rod, cv)[1], magnet_frames(task, rod, p[s + 1:])[1])
+        assert models["constant velocity"]["one_step"] == pytest.approx(float(err.abs().mean(0).sum()), rel=1e-4)
+    script_fails([str(ROOT / "scripts/report_step_baselines.py"), "--checkpoints",
+                  str(ROOT / "checkpoints/semicircle.pt")], tmp_path, "--checkpoints")
+    script_fails([str(ROOT / "scripts/report_step_baselines.py"), "--variants", "1"], tmp_path, "--variants")
+
+
 def test_one_step_bias_report_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/report_one_step_bias.py"), "--checkpoints", "checkpoints/semicircle.pt",
                       "--duration", "0.3", "--window", "10", "--out", "bias.md"], tmp_path)
