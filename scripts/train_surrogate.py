@@ -72,6 +72,9 @@ class Args:
     ema: float = opt(0.0, "decay of an exponential moving average of the weights, updated every optimiser step, "
                           "that validation scores and the checkpoint ships (0: off; e.g. 0.995)")
     noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale")
+    noise_shape: str = opt("walk", "the training noise in time: a random walk over the history frames (walk), or "
+                                   "one shift per node and window (offset: the velocities left exact)",
+                           ["walk", "offset"])
     time_reversal: bool = opt(False, "also train on every window played backwards (undamped scenes with "
                                      "time-dependent forces only, whose motion is time-reversible), which "
                                      "penalises a step that dissipates energy")
@@ -276,7 +279,7 @@ def main(argv=None):
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight,
-                             wrench_fn=wrench_fn if a.closed_loop else None)
+                             wrench_fn=wrench_fn if a.closed_loop else None, noise_shape=a.noise_shape)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger

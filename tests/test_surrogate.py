@@ -587,6 +587,31 @@ def test_one_step_loss_predicts_every_frame_from_the_true_history(tiny):
         SurrogateModule(model, one_step_weight=-1.0)
 
 
+def test_training_noise_walks_or_shifts_the_modelled_history(tiny):
+    from cmlearn.surrogate.training import SurrogateModule
+    dm, model, _ = tiny_training(tiny, 1)
+    batch = next(iter(dm._loader("train", shuffle=False)))
+    hist, idx = batch[0], model.idx_modeled
+    fixed = [i for i in range(hist.shape[2]) if i not in idx.tolist()]
+    out = {}
+    for shape in ("walk", "offset"):
+        torch.manual_seed(3)
+        noisy = SurrogateModule(model, noise=0.5, noise_shape=shape).noisy(batch)
+        assert all(a is b for a, b in zip(noisy[1:], batch[1:]))  # targets, forces and reference left exact
+        d = (noisy[0] - hist)
+        assert torch.equal(d[:, :, fixed], torch.zeros_like(d[:, :, fixed]))  # anchors untouched
+        out[shape] = d[:, :, idx]
+    walk, shift = out["walk"], out["offset"]
+    steps = walk[:, 1:] - walk[:, :-1]  # a random walk: independent steps of std noise x v_scale
+    assert 0.4 < float((steps / model.v_scale).std()) < 0.6 and float((walk[:, 0] / model.v_scale).std()) > 0.4
+    # an offset: the same shift in every frame of a window (velocities exact), of std noise x v_scale
+    assert torch.allclose(shift, shift[:, :1].expand_as(shift), atol=1e-6)
+    assert 0.4 < float((shift[:, 0] / model.v_scale).std()) < 0.6
+    assert SurrogateModule(model, noise=0.0, noise_shape="offset").noisy(batch) is batch
+    with pytest.raises(ValueError, match="noise_shape"):
+        SurrogateModule(model, noise_shape="pink")
+
+
 def test_rollout_selection_scores_the_free_running_validation_trajectory(tiny):
     """val_rollout_mm is the modelled nodes' mean error of the surrogate rolled out from the validation
     trajectory's first frame to its end, as the evaluation's free-running mode computes it; a runaway

@@ -104,14 +104,18 @@ class SurrogateDataModule(L.LightningDataModule):
 class SurrogateModule(L.LightningModule):
     def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
                  weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0,
-                 step_weighting: str = "uniform", one_step_weight: float = 0.0, wrench_fn=None):
+                 step_weighting: str = "uniform", one_step_weight: float = 0.0, wrench_fn=None,
+                 noise_shape: str = "walk"):
         super().__init__()
+        if noise_shape not in ("walk", "offset"):
+            raise ValueError(f"noise_shape must be 'walk' or 'offset', got {noise_shape!r}")
         if step_weighting not in ("uniform", "inverse_square"):
             raise ValueError(f"step_weighting must be 'uniform' or 'inverse_square', got {step_weighting!r}")
         if not one_step_weight >= 0:
             raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
         self.model, self.wrench_fn = model, wrench_fn  # wrench_fn(frame, inputs_h) -> (B, K, 3): closed loop
         self.noise, self.step_weighting, self.one_step_weight = noise, step_weighting, one_step_weight
+        self.noise_shape = noise_shape
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
         self.save_hyperparameters(ignore=["model"])
@@ -157,12 +161,19 @@ class SurrogateModule(L.LightningModule):
         return err.pow(2).mean()
 
     def noisy(self, batch):
-        """Training noise: a random walk (std ``noise`` x the node's step scale per frame) added to the
-        modelled nodes' history, so that the model learns to correct its own rollout errors."""
+        """Training noise on the modelled nodes' history, so that the model learns to correct its own rollout
+        errors: ``walk``, a random walk (std ``noise`` x the node's step scale per frame), which also perturbs
+        the history's velocities; ``offset``, one shift of that std per node and window, the same in every
+        frame (a free-running rollout's slow drift: its positions err, its steps hardly), which leaves the
+        velocities exact, so the model learns to pull a displaced node back without learning to distrust
+        the motion it sees."""
         if self.noise <= 0:
             return batch
         hist = batch[0]
         idx = self.model.idx_modeled
+        if self.noise_shape == "offset":
+            shift = torch.randn_like(hist[:, :1, idx]) * self.noise * self.model.v_scale
+            return (hist.index_add(2, idx, shift.expand_as(hist[:, :, idx])), *batch[1:])
         walk = (torch.randn_like(hist[:, :, idx]) * self.noise * self.model.v_scale).cumsum(1)
         return (hist.index_add(2, idx, walk), *batch[1:])
 
