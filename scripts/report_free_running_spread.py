@@ -27,9 +27,8 @@ import torch
 
 from cmlearn.data.magnetic import magnet_frames, rollout
 from cmlearn.io import write_text_atomic
-from cmlearn.surrogate import Surrogate
-from cmlearn.surrogate.magnetic import (nudged_free_running, orientation_errors, orientation_stats, profile_start,
-                                       reference_profiles)
+from cmlearn.surrogate.magnetic import (load_checkpoints, nudged_free_running, orientation_errors, orientation_stats,
+                                        profile_start, reference_profiles)
 
 
 def six_sum(stats: dict) -> float:
@@ -66,11 +65,10 @@ def main(argv=None):
     if any(not s >= 0 for s in a.sigmas):
         ap.error(f"--sigmas must be >= 0 m, got {a.sigmas}")
     torch.set_num_threads(a.threads)
-    engines = {Path(p).name: Surrogate.load(p) for p in a.checkpoints}
-    tasks = {e.task.name for e in engines.values()}
-    if len(tasks) != 1 or not next(iter(engines.values())).task.custom:
-        raise SystemExit(f"--checkpoints: give checkpoints of one magnetic-rod task, not {sorted(tasks)}")
-    task = next(iter(engines.values())).task
+    try:
+        engines, task = load_checkpoints(a.checkpoints)
+    except ValueError as e:
+        raise SystemExit(f"--checkpoints: {e}") from None
     rows = []
     for label, scene, pts, W, printed in reference_profiles(task, a.duration or None, a.data_dir):
         row = {"case": label, "models": {}}

@@ -27,11 +27,10 @@ from cmlearn.data import cached_dataset
 from cmlearn.data.magnetic import magnet_frames
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.io import write_text_atomic
-from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.baselines import LinearStep
 from cmlearn.surrogate.evaluate import one_step
-from cmlearn.surrogate.magnetic import (nudged_free_running, orientation_errors, profile_start,
-                                       reference_profiles)
+from cmlearn.surrogate.magnetic import (load_checkpoints, nudged_free_running, orientation_errors, profile_start,
+                                        reference_profiles)
 
 
 def one_step_sum(model, task, scene, p, Wk, s) -> float:
@@ -64,12 +63,11 @@ def main(argv=None):
     if not a.ridge >= 0:
         ap.error(f"--ridge must be >= 0, got {a.ridge}")
     torch.set_num_threads(a.threads)
-    engines = {Path(p).name: Surrogate.load(p) for p in a.checkpoints}
-    tasks = {e.task.name for e in engines.values()}
-    first = next(iter(engines.values()))
-    if len(tasks) != 1 or not first.task.custom:
-        raise SystemExit(f"--checkpoints: give checkpoints of one magnetic-rod task, not {sorted(tasks)}")
-    task, config = first.task, first.model.config
+    try:
+        engines, task = load_checkpoints(a.checkpoints)
+    except ValueError as e:
+        raise SystemExit(f"--checkpoints: {e}") from None
+    config = next(iter(engines.values())).model.config
     data = cached_dataset(task, a.variants, a.seed, a.data_dir, a.duration or None)
     P = data["positions"]
     Wk = node_wrench(data["wrench"], task.wrench_nodes, task.modeled)
