@@ -11,8 +11,8 @@ by ridge least squares on training trajectories (:meth:`LinearStep.fit`):
 * global: every node from all tracked points and every node's force.
 
 Unfitted (all weights zero) it is the constant-velocity step ``p(t+1) = 2 p(t) - p(t-1)``, the Verlet-form
-surrogate with a zero network output. A surrogate whose one-step error is not below these measures nothing
-one step ahead; free-running is where a linear map of a nonlinear rod fails.
+surrogate with a zero network output. A surrogate's one-step error means something only beside these; on
+their own predictions (free-running) the linear maps of a nonlinear rod are where they fail.
 """
 from __future__ import annotations
 
