@@ -32,9 +32,8 @@ class LinearStep(nn.Module):
 
     def __init__(self, config: NodeLSTMConfig, local: bool = True):
         super().__init__()
-        if config.rest_anchor or config.chord_projection or config.reflections:
-            config = NodeLSTMConfig(n_tracked=config.n_tracked, modeled=config.modeled, left=config.left,
-                                    right=config.right, eta=config.eta)  # the structure alone
+        config = NodeLSTMConfig(n_tracked=config.n_tracked, modeled=config.modeled, left=config.left,
+                                right=config.right, eta=config.eta)  # the structure alone: no anchor, mirror, projection
         self.config, self.local = config, local
         self.register_buffer("idx_modeled", torch.tensor(config.modeled, dtype=torch.long), persistent=False)
         self.register_buffer("nodes", torch.tensor([config.left, config.modeled, config.right]).t(), persistent=False)
@@ -93,7 +92,7 @@ class LinearStep(nn.Module):
         else:
             Y = Y.flatten(1)
         mean, scale = X.mean(-2), X.std(-2)
-        mean[..., -1], scale[..., -1] = 0.0, 1.0  # the constant stays one
+        mean[..., -1] = 0.0  # the constant stays one (its zero spread, as any constant feature's, scales by one)
         scale = torch.where(scale > 0, scale, torch.ones_like(scale))
         Xn = (X - mean.unsqueeze(-2)) / scale.unsqueeze(-2)
         # ridge as extra rows (least squares of [Xn; sqrt(ridge S) I] against [Y; 0]): rank-deficient features (an
