@@ -27,8 +27,9 @@ import torch
 
 from cmlearn.data.magnetic import magnet_frames, rollout
 from cmlearn.io import write_text_atomic
-from cmlearn.surrogate.magnetic import (load_checkpoints, nudged_free_running, orientation_errors, orientation_stats,
-                                        profile_start, reference_profiles)
+from cmlearn.surrogate.engine import load_checkpoints
+from cmlearn.surrogate.magnetic import (nudged_free_running, orientation_errors, orientation_stats, profile_start,
+                                        reference_profiles)
 
 
 def six_sum(stats: dict) -> float:
@@ -66,7 +67,7 @@ def main(argv=None):
         ap.error(f"--sigmas must be >= 0 m, got {a.sigmas}")
     torch.set_num_threads(a.threads)
     try:
-        engines, task = load_checkpoints(a.checkpoints)
+        engines, task = load_checkpoints(a.checkpoints, magnetic=True)
     except ValueError as e:
         raise SystemExit(f"--checkpoints: {e}") from None
     rows = []

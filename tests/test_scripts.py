@@ -454,9 +454,33 @@ def test_step_baselines_report_quick(tmp_path):
         rod = task.base_scene().rod
         err = orientation_errors(magnet_frames(task, rod, cv)[1], magnet_frames(task, rod, p[s + 1:])[1])
         assert models["constant velocity"]["one_step"] == pytest.approx(float(err.abs().mean(0).sum()), rel=1e-4)
-    script_fails([str(ROOT / "scripts/report_step_baselines.py"), "--checkpoints",
+    script_fails([str(ROOT / "scripts/report_step_baselines.py"), "--checkpoints", str(ROOT / "checkpoints/magnetic_rod.pt"),
                   str(ROOT / "checkpoints/semicircle.pt")], tmp_path, "--checkpoints")
     script_fails([str(ROOT / "scripts/report_step_baselines.py"), "--variants", "1"], tmp_path, "--variants")
+    script_fails([str(ROOT / "scripts/report_step_baselines.py"), "--eta", "1"], tmp_path, "--eta")
+
+
+def test_step_baselines_report_on_positions_quick(tmp_path):
+    from cmlearn.data import load_dataset
+    from cmlearn.data.windows import split_ranges
+    res = run_script([str(ROOT / "scripts/report_step_baselines.py"), "--checkpoints", str(ROOT / "checkpoints/semicircle.pt"),
+                      "--duration", "0.3", "--variants", "2", "--eta", "3", "--data-dir", str(tmp_path),
+                      "--out", "base.md"], tmp_path)
+    text = (tmp_path / "base.md").read_text()
+    assert "| semicircle_heldout | thesis (Paper II) | 3.73, 1.25 / 2.0, 0.2 / 8.1, 1.2 |" in text
+    assert res["eta"] == 3 and [r["case"] for r in res["rows"]] == ["semicircle (last 40 %)", "semicircle_heldout"]
+    models = res["rows"][0]["models"]
+    assert list(models) == ["semicircle.pt", "constant velocity", "linear, local", "linear, global"]
+    # the constant-velocity step by hand on the printed scene's last 40 %, node 50: p(t+1) = 2 p(t) - p(t-1)
+    data = load_dataset(next(tmp_path.glob("semicircle_v2_*.pt")))
+    p = data["positions"][0].double()[:, data["meta"]["tracked"].index(50)]
+    s = split_ranges(2, p.shape[0])["test"][0][1]
+    err = (p[s + 1:] - (2 * p[s:-1] - p[s - 1:-2])).abs() * 1e3
+    for i, ax in enumerate("xyz"):
+        cv = models["constant velocity"]["one_step"][ax]
+        assert cv["max_mm"] == pytest.approx(float(err[:, i].max()), rel=1e-3, abs=1e-6)
+        assert cv["mean_mm"] == pytest.approx(float(err[:, i].mean()), rel=1e-3, abs=1e-6)
+    assert err[:, 1].max() > 1e-3  # the node moves: the check above is not of zeros
 
 
 def test_one_step_bias_report_quick(tmp_path):

@@ -28,7 +28,7 @@ from physics.programs import compile_program
 
 from .checkpoint import CheckpointError, load_checkpoint
 
-__all__ = ["Surrogate", "SurrogateDivergence", "check_rollout"]
+__all__ = ["Surrogate", "SurrogateDivergence", "check_rollout", "load_checkpoints"]
 
 
 def median_latency(call, n: int, warmup: int) -> float:
@@ -232,3 +232,14 @@ class Surrogate:
         ref = hist[:, 0]
         with self.symmetric(axes):
             return median_latency(lambda: self.step(hist, wrench, ref), n, warmup)
+
+
+def load_checkpoints(paths, magnetic: bool = False) -> tuple[dict, SurrogateTask]:
+    """``({file name: Surrogate}, task)`` of checkpoints that must all be of one task, and of a magnetic-rod task
+    (a task with its own module) where ``magnetic``; ``ValueError`` otherwise."""
+    engines = {Path(p).name: Surrogate.load(p) for p in paths}
+    tasks = {e.task.name for e in engines.values()}
+    task = next(iter(engines.values())).task
+    if len(tasks) != 1 or (magnetic and not task.custom):
+        raise ValueError(f"give checkpoints of one {'magnetic-rod ' if magnetic else ''}task, not {sorted(tasks)}")
+    return engines, task

@@ -43,7 +43,7 @@ from .evaluate import from_rest, interest_slots, one_step
 __all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
            "closed_loop_wrench", "nudged_free_running", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
            "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "closed_loop_program", "check_workspace",
-           "closed_loop_latency", "reference_profiles", "profile_start", "load_checkpoints"]
+           "closed_loop_latency", "reference_profiles", "profile_start"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 # m: the ball over which the real-time closed loop tabulates the coil field: the six-coil eMNS's 50 mm workspace
@@ -51,17 +51,6 @@ MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 # error, 5 mm short of the coils' faces
 FIELD_TABLE_RADIUS = 0.06
 _TABLES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # field_table's, per eMNS
-
-
-def load_checkpoints(paths) -> tuple[dict, object]:
-    """``({file name: Surrogate}, task)`` of checkpoints that must all be of one magnetic-rod task (a task with
-    this custom module); ``ValueError`` otherwise."""
-    from .engine import Surrogate
-    engines = {Path(p).name: Surrogate.load(p) for p in paths}
-    tasks = {e.task.name for e in engines.values()}
-    if len(tasks) != 1 or not next(iter(engines.values())).task.custom:
-        raise ValueError(f"give checkpoints of one magnetic-rod task, not {sorted(tasks)}")
-    return engines, next(iter(engines.values())).task
 
 
 def reference_profiles(task, duration: float | None, data_dir: str | Path | None):
