@@ -16,7 +16,8 @@ rest.
   about x, y, z); free-running open loop (each step's wrench the LGVI's own, :func:`nudged_free_running` with one
   unnudged start), the checkpoints also closed loop. A run that left the rod reads "lost".
 * Any other task: the node of interest's max and mean absolute error per axis (mm, as
-  :func:`cmlearn.surrogate.evaluate.evaluate`), beside the thesis's. A rollout that overflowed reads "lost".
+  :func:`cmlearn.surrogate.evaluate.evaluate`), beside the thesis's. A rollout that left every shape of the rod
+  (an error beyond twice its length) reads "lost".
 
 Writes the markdown atomically and prints one JSON line last.
 """
@@ -73,7 +74,7 @@ def magnetic_rows(models: dict, engines: dict, task, a) -> list[dict]:
 
 def position_rows(models: dict, task, data: dict, a) -> list[dict]:
     """Per scene (the printed one's last 40 %, each held-out one from rest), each model's node-of-interest errors
-    (:func:`evaluate`'s ``node`` entry per mode; ``None`` where the rollout overflowed) and the thesis's."""
+    (:func:`_node_errors`) and the thesis's."""
     scene = task.base_scene()
     L, slots = scene.rod.length, interest_slots(task, scene)
     pos = data["positions"][0]
@@ -81,7 +82,7 @@ def position_rows(models: dict, task, data: dict, a) -> list[dict]:
     wr = node_wrench(data["wrench"][0], task.wrench_nodes, task.modeled)
     rows = [{"case": f"{task.scene} (last 40 %)", "thesis": THESIS_ERRORS_MM.get(task.scene), "models": {}}]
     for name, model in models.items():
-        rows[0]["models"][name] = _node_errors(evaluate(model, pos, wr, cut, slots, L))
+        rows[0]["models"][name] = _node_errors(evaluate(model, pos, wr, cut, slots, L), L)
     for case in task.heldout:
         row = {"case": case, "thesis": THESIS_ERRORS_MM.get(case) or THESIS_ERRORS_MM.get(f"{task.name}_heldout"),
                "models": {}}
@@ -92,18 +93,21 @@ def position_rows(models: dict, task, data: dict, a) -> list[dict]:
                 held[eta] = heldout_case(task, case, eta, a.duration or None, a.data_dir)
             p, wk, _ = held[eta]
             row["models"][name] = _node_errors(evaluate(model, p, wk, eta,
-                                                        interest_slots(task, task.scene_by_name(case)), L))
+                                                        interest_slots(task, task.scene_by_name(case)), L), L)
         rows.append(row)
     for r in rows:
         print(f"{r['case']}: done", flush=True)
     return rows
 
 
-def _node_errors(result: dict) -> dict:
+def _node_errors(result: dict, length: float) -> dict:
+    """The node entry of :func:`evaluate` per mode, max and mean mm per axis; ``None`` for a rollout that left every
+    shape of the rod (an error beyond twice its length, or not finite)."""
     out = {}
     for mode in ("one_step", "free_running"):
         e = {ax: {k: v[k] for k in ("max_mm", "mean_mm")} for ax, v in result[mode]["node"].items()}
-        out[mode] = e if all(math.isfinite(v) for d in e.values() for v in d.values()) else None
+        ok = all(math.isfinite(v) and v <= 2e3 * length for d in e.values() for v in d.values())
+        out[mode] = e if ok else None
     return out
 
 
