@@ -37,7 +37,7 @@ from cmlearn.io import write_text_atomic
 from cmlearn.models import NodeLSTMConfig
 from cmlearn.surrogate.baselines import LinearStep
 from cmlearn.surrogate.engine import load_checkpoints
-from cmlearn.surrogate.evaluate import THESIS_ERRORS_MM, evaluate, heldout_case, interest_slots, one_step
+from cmlearn.surrogate.evaluate import evaluate_scenes, one_step, thesis_errors
 from cmlearn.surrogate.magnetic import nudged_free_running, orientation_errors, profile_start, reference_profiles
 
 
@@ -73,30 +73,16 @@ def magnetic_rows(models: dict, engines: dict, task, a) -> list[dict]:
 
 
 def position_rows(models: dict, task, data: dict, a) -> list[dict]:
-    """Per scene (the printed one's last 40 %, each held-out one from rest), each model's node-of-interest errors
-    (:func:`_node_errors`) and the thesis's."""
-    scene = task.base_scene()
-    L, slots = scene.rod.length, interest_slots(task, scene)
-    pos = data["positions"][0]
-    cut = split_ranges(data["meta"]["n_variants"], pos.shape[0])["test"][0][1]
-    wr = node_wrench(data["wrench"][0], task.wrench_nodes, task.modeled)
-    rows = [{"case": f"{task.scene} (last 40 %)", "thesis": THESIS_ERRORS_MM.get(task.scene), "models": {}}]
-    for name, model in models.items():
-        rows[0]["models"][name] = _node_errors(evaluate(model, pos, wr, cut, slots, L), L)
-    for case in task.heldout:
-        row = {"case": case, "thesis": THESIS_ERRORS_MM.get(case) or THESIS_ERRORS_MM.get(f"{task.name}_heldout"),
-               "models": {}}
-        held = {}  # per history length: the LGVI run from rest (cached on disk in --data-dir)
-        for name, model in models.items():
-            eta = model.config.eta
-            if eta not in held:
-                held[eta] = heldout_case(task, case, eta, a.duration or None, a.data_dir)
-            p, wk, _ = held[eta]
-            row["models"][name] = _node_errors(evaluate(model, p, wk, eta,
-                                                        interest_slots(task, task.scene_by_name(case)), L), L)
-        rows.append(row)
-    for r in rows:
-        print(f"{r['case']}: done", flush=True)
+    """Per scene (the printed one's last 40 %, each held-out one from rest: :func:`evaluate_scenes`), each model's
+    node-of-interest errors (:func:`_node_errors`) and the thesis's."""
+    L = task.base_scene().rod.length
+    results = {name: evaluate_scenes(model, task, data, a.duration or None, a.data_dir) for name, model in models.items()}
+    rows = []
+    for case in next(iter(results.values())):
+        rows.append({"case": f"{task.scene} (last 40 %)" if case == "seen_last40" else case,
+                     "thesis": thesis_errors(task.name, case),
+                     "models": {name: _node_errors(r[case], L) for name, r in results.items()}})
+        print(f"{rows[-1]['case']}: done", flush=True)
     return rows
 
 

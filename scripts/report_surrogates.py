@@ -16,7 +16,7 @@ from pathlib import Path
 
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import surrogate_checkpoints
-from cmlearn.surrogate.evaluate import THESIS_ERRORS_MM as THESIS
+from cmlearn.surrogate.evaluate import thesis_errors
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTES = "<!-- notes: hand-written below this line; scripts/report_surrogates.py keeps them -->"
@@ -58,19 +58,13 @@ def fmt(e) -> str:
     return " / ".join(f"{e[a]['max_mm']:.2f}, {e[a]['mean_mm']:.2f}" for a in "xyz")
 
 
-def thesis_for(task: str, case: str):
-    if case == "seen_last40":
-        return THESIS.get(task)
-    return THESIS.get(case) or THESIS.get(f"{task}_heldout")
-
-
 def rows(checkpoints):
     out = []
     for path in checkpoints:
         meta = json.loads(path.with_suffix(".json").read_text())
         variant = "" if path.stem == meta["task"] else f" (`{path.name}`)"  # a second checkpoint of a task
         for case, m in meta["metrics"].items():
-            th = thesis_for(meta["task"], case)
+            th = thesis_errors(meta["task"], case)
             label = case if case != "seen_last40" else f"{meta['scene']} (last 40 %)"
             out.append({"task": meta["task"], "case": label + variant,
                         "thesis": " / ".join(f"{a}, {b}" for a, b in th) if th else "",

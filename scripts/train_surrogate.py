@@ -28,10 +28,9 @@ import torch
 
 import cmlearn
 from cmlearn.data import TASKS, cached_dataset, get_task
-from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
-from cmlearn.surrogate.evaluate import evaluate, heldout_case, interest_slots
+from cmlearn.surrogate.evaluate import evaluate_scenes
 
 
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
@@ -217,19 +216,7 @@ def evaluate_all(model, task, data: dict, a: Args) -> dict:
     """Seen scene (variant 0, last 40 %) and the held-out scenes from rest, both modes."""
     if task.custom:  # e.g. the magnetic rod: closed-loop rollout, orientation errors, the Cosserat baseline
         return task.hook("evaluate")(model, task, data, a)
-    meta = data["meta"]
-    pos = data["positions"][0]
-    wr = node_wrench(data["wrench"][0], meta["wrench_nodes"], meta["modeled"])
-    scene = task.base_scene()
-    L = scene.rod.length
-    slots = interest_slots(task, scene)
-    cut = split_ranges(meta["n_variants"], pos.shape[0])["test"][0][1]
-    metrics = {"seen_last40": evaluate(model, pos, wr, cut, slots, L)}
-    for name in task.heldout:
-        p, Wk, wall = heldout_case(task, name, a.eta, a.duration, a.data_dir)
-        metrics[name] = evaluate(model, p, Wk, a.eta, interest_slots(task, task.scene_by_name(name)), L)
-        metrics[name]["lgvi_wall_s"] = wall
-    return metrics
+    return evaluate_scenes(model, task, data, a.duration, a.data_dir)
 
 
 def ema_callback(decay: float):

@@ -21,7 +21,8 @@ from torch import Tensor
 
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-__all__ = ["one_step", "node_recursive", "free_running", "evaluate", "from_rest", "interest_slots", "THESIS_ERRORS_MM"]
+__all__ = ["one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest", "interest_slots",
+           "THESIS_ERRORS_MM", "thesis_errors"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
 THESIS_ERRORS_MM = {
@@ -32,6 +33,14 @@ THESIS_ERRORS_MM = {
     "semicircle": ((1.36, 0.78), (0.23, 0.13), (2.22, 0.81)),
     "semicircle_heldout": ((3.73, 1.25), (2.0, 0.2), (8.1, 1.2)),
 }
+
+
+def thesis_errors(task: str, case: str):
+    """Paper II's figures for a case of a checkpoint's metrics (``"seen_last40"`` or a held-out scene of ``task``),
+    or ``None`` where the thesis gives none."""
+    if case == "seen_last40":
+        return THESIS_ERRORS_MM.get(task)
+    return THESIS_ERRORS_MM.get(case) or THESIS_ERRORS_MM.get(f"{task}_heldout")
 
 
 def interest_slots(task, scene) -> list[int]:
@@ -117,6 +126,26 @@ def evaluate(model, positions: Tensor, wrench: Tensor, start: int, slots, length
                      "all_nodes_max_mm": float((pred - ref).abs().max()) * 1e3,
                      "rmse_mean_mm": float(r.mean()) * 1e3, "rmse_max_mm": float(r.max()) * 1e3}
     return out
+
+
+def evaluate_scenes(model, task, data: dict, duration: float | None = None, data_dir=None) -> dict:
+    """:func:`evaluate` on the printed scene (``data``'s variant 0 from its test cut, the last 40 %) as
+    ``"seen_last40"`` and on each held-out scene of ``task`` from rest (the LGVI's run, :func:`heldout_case`, with
+    its wall time as ``lgvi_wall_s``), keyed by scene name. Position tasks only (the magnetic rod has its own)."""
+    from cmlearn.data.windows import node_wrench, split_ranges
+    meta = data["meta"]
+    pos = data["positions"][0]
+    wr = node_wrench(data["wrench"][0], meta["wrench_nodes"], meta["modeled"])
+    scene = task.base_scene()
+    L = scene.rod.length
+    cut = split_ranges(meta["n_variants"], pos.shape[0])["test"][0][1]
+    metrics = {"seen_last40": evaluate(model, pos, wr, cut, interest_slots(task, scene), L)}
+    eta = model.config.eta
+    for name in task.heldout:
+        p, Wk, wall = heldout_case(task, name, eta, duration, data_dir)
+        metrics[name] = evaluate(model, p, Wk, eta, interest_slots(task, task.scene_by_name(name)), L)
+        metrics[name]["lgvi_wall_s"] = wall
+    return metrics
 
 
 def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict:
