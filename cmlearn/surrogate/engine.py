@@ -96,15 +96,15 @@ class Surrogate:
                 pk = self.model.project_chords(hist[:, -1].index_copy(1, idx, pk), ref)[:, idx]
         return pk
 
-    @torch.no_grad()
     def rest_accel(self, ref: Tensor) -> Tensor | None:
         """The model's :meth:`~cmlearn.models.NodeLSTMSurrogate.rest_accel` of ``ref``, cached; ``None`` for
         a model without the rest anchor."""
         if not self.model.config.rest_anchor:
             return None
         key = (id(ref), ref._version, ref.shape, ref.dtype, self.model.symmetry_axes)
-        if key != self._rest_key:
-            self._rest_key, self._rest = key, self.model.rest_accel(ref)
+        if key != self._rest_key:  # no_grad only here: its context costs a microsecond a step
+            with torch.no_grad():
+                self._rest_key, self._rest = key, self.model.rest_accel(ref)
         return self._rest
 
     @contextmanager
