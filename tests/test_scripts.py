@@ -600,3 +600,14 @@ def test_report_loop_swing_against_the_lgvi(tmp_path):
     assert "| printed, h/w 3.00 |" in (tmp_path / "ls.md").read_text()
     script_fails([str(ROOT / "scripts/report_loop_swing.py"), "--variants", "2", "--duration", "2", "--after", "5"],
                  tmp_path, "leaves nothing")
+
+
+def test_bench_surrogate_program_quick(tmp_path):
+    """Both program forms of the mirrored Simulation III step compile and equal the eager step to round-off; the
+    timings are there (not compared: a shared CI machine)."""
+    res = run_script([str(ROOT / "scripts/bench/surrogate_program.py"), "--quick",
+                      "--checkpoint", str(ROOT / "checkpoints/semicircle.pt")], tmp_path)
+    (images, fig), = res["images"].items()
+    assert images == "1" and fig["axes"] == [2, 0] and res["gemm_templates"] is False
+    assert fig["current_us"] > 0 and fig["torch_us"] > 0
+    assert max(fig["max_abs_vs_eager_m"].values()) < 1e-7

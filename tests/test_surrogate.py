@@ -182,6 +182,29 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     assert torch.allclose(fr, rolled[1:], atol=1e-6)
 
 
+def test_program_activations_and_head_equal_torch_including_extremes():
+    """The compiled step's forms (exp-based sigmoid and tanh, a <= 4-output layer as a summed product) are
+    torch's functions to float round-off, saturate exactly at +-inf and far out instead of giving NaN, and
+    the model's head in that form equals its nn.Sequential."""
+    from cmlearn.models.node_lstm import _program_mlp, _program_sigmoid, _program_tanh
+    x = torch.cat([torch.linspace(-30, 30, 2001), torch.tensor([-1e4, -100.0, 0.0, 100.0, 1e4, -math.inf, math.inf])])
+    assert torch.allclose(_program_sigmoid(x), torch.sigmoid(x), rtol=0, atol=2e-7)
+    assert torch.allclose(_program_tanh(x), torch.tanh(x), rtol=0, atol=5e-7)
+    ends = torch.tensor([-math.inf, -1e4, 1e4, math.inf])
+    assert _program_sigmoid(ends).tolist() == [0.0, 0.0, 1.0, 1.0]
+    assert _program_tanh(ends).tolist() == [-1.0, -1.0, 1.0, 1.0]
+    torch.manual_seed(0)
+    model = NodeLSTMSurrogate(NodeLSTMConfig.chain(tuple(range(6)), (1, 2, 3, 4), hidden=8))
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 1.0)
+    h = torch.randn(2, 4, model.head[0].in_features)
+    with torch.no_grad():
+        assert torch.allclose(_program_mlp(model.head, h), model.head(h), atol=1e-6)
+        assert torch.allclose(_program_mlp(model.wrench, h[..., :3]), model.wrench(h[..., :3]), atol=1e-6)
+    with pytest.raises(TypeError, match="ReLU"):
+        _program_mlp(torch.nn.Sequential(torch.nn.ReLU()), h)
+
+
 def test_node_recursive_runs_one_node_on_its_own_predictions_among_the_true_others(tiny):
     from cmlearn.surrogate.evaluate import node_recursive
     task = get_task("semicircle")

@@ -129,8 +129,9 @@ class NodeLSTMConfig:
 def _program_sigmoid(x: Tensor) -> Tensor:
     """``sigmoid`` as ``1 / (1 + exp(-x))`` (exact at +-inf: ``exp`` overflows to inf, the result to 0), for
     compiled programs only (no gradients: ``exp`` overflows in the backward). Inductor's vectorised C++
-    ``exp`` is several times cheaper than its ``tanh``: with these, the dense head's last layer in
-    :func:`_program_mlp` and the LSTM, a two-image Simulation III step compiled ran 120 -> 89 us."""
+    ``exp`` is cheaper than its ``tanh`` (Sleef's): with these in the LSTM and the head, and the
+    head's last layer as in :func:`_program_mlp`, the compiled Simulation III step's program takes a quarter
+    less time with one, two and four mirror images (``python scripts/bench/surrogate_program.py``)."""
     return 1 / (1 + torch.exp(-x))
 
 

@@ -1,0 +1,108 @@
+"""Benchmark: the compiled surrogate step's program in its current form against the form it replaced, same
+process, interleaved.
+
+    python scripts/bench/surrogate_program.py [--checkpoint checkpoints/semicircle.pt] [--quick]
+
+The current form (``NodeLSTMSurrogate.forward(..., program=True)``) computes the LSTM's and the dense layers'
+sigmoid and tanh through ``exp`` and the head's 3-output layer as a summed product
+(:func:`cmlearn.models.node_lstm._program_mlp`). The peer is the same model compiled with ``torch.sigmoid``,
+``torch.tanh`` and the ``nn`` layers as they are (the form before 2026-11-29). Both are compiled by
+:func:`physics.programs.compile_program` for a batch-1 step of Simulation III's held-out scene with one, two
+and four mirror images in use (``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the
+fastest of ``--rounds`` means of ``--calls`` calls, the two forms timed in turn, so that a machine whose
+speed drifts (these shared CPUs drift by up to 2x over minutes) slows both alike. Last line: one JSON object.
+``--quick``: one image, library matrix products (faster compiles), fewer calls.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import torch
+
+from cmlearn.models import node_lstm
+from cmlearn.surrogate import Surrogate
+from physics.programs import compile_program
+
+FORMS = {
+    "current": (node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp),
+    "torch": (torch.sigmoid, torch.tanh, lambda seq, x: seq(x)),
+}
+
+
+def compile_form(model, form: str, args, gemm_templates: bool):
+    """The model's program-form step compiled with the activations and layers of ``form``."""
+    saved = node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp
+    node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = FORMS[form]
+    try:
+        return compile_program(lambda h, w, r, *rest: model(h, w, r, program=True, rest=rest[0] if rest else None),
+                               args, gemm_templates=gemm_templates)
+    finally:
+        node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = saved
+
+
+def interleaved_us(calls: dict, rounds: int, n: int) -> dict:
+    """The fastest of ``rounds`` means of ``n`` calls of each, in microseconds, the calls timed in turn."""
+    best = {k: float("inf") for k in calls}
+    for f in calls.values():
+        for _ in range(20):
+            f()
+    for _ in range(rounds):
+        for k, f in calls.items():
+            t0 = time.perf_counter()
+            for _ in range(n):
+                f()
+            best[k] = min(best[k], (time.perf_counter() - t0) / n * 1e6)
+    return best
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", default="checkpoints/semicircle.pt")
+    ap.add_argument("--scene", default="semicircle_heldout")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--rounds", type=int, default=9)
+    ap.add_argument("--calls", type=int, default=400)
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args(argv)
+    if a.rounds < 1 or a.calls < 1:
+        raise SystemExit("--rounds and --calls must be >= 1")
+    torch.set_num_threads(a.threads)
+    engine = Surrogate.load(a.checkpoint)
+    model = engine.model
+    p0 = engine._initial_points(engine.task.scene_by_name(a.scene))
+    gen = torch.Generator().manual_seed(0)
+    K, W = model.idx_modeled.numel(), model.config.eta + 1
+    hist = (p0[None, None].expand(1, W, -1, -1) + 1e-3 * torch.randn(1, W, *p0.shape, generator=gen)).contiguous()
+    wrench = 0.01 * torch.randn(1, K, 3, generator=gen)
+    ref = p0[None].clone()
+    mirrors = tuple(axis for axis, _ in model.config.reflections)
+    settings = [mirrors] if a.quick or len(mirrors) != 2 else [mirrors, mirrors[-1:], ()]
+    rounds, n = (3, 100) if a.quick else (a.rounds, a.calls)
+    res = {"checkpoint": a.checkpoint, "scene": a.scene, "threads": a.threads, "batch": 1, "dtype": "float32",
+           "rounds": rounds, "calls": n, "gemm_templates": not a.quick, "platform": platform.platform(), "images": {}}
+    for axes in settings:
+        model.use_symmetry(axes)
+        rest = model.rest_accel(ref) if model.config.rest_anchor else None
+        args = [hist, wrench, ref] + ([] if rest is None else [rest])
+        with torch.no_grad():
+            want = model(hist, wrench, ref, rest=rest)
+        progs = {form: compile_form(model, form, args, not a.quick) for form in FORMS}
+        dev = {form: float((p(*args) - want).abs().max()) for form, p in progs.items()}
+        us = interleaved_us({form: (lambda p: lambda: p(*args))(p) for form, p in progs.items()}, rounds, n)
+        images = model.img_sign.shape[0]
+        res["images"][str(images)] = {"axes": list(axes), "current_us": us["current"], "torch_us": us["torch"],
+                                      "time_ratio": us["current"] / us["torch"],
+                                      "max_abs_vs_eager_m": dev}
+        print(f"{images} of {model.mirror_sign.shape[0]} images: current {us['current']:.1f} us, torch's "
+              f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); max |compiled - "
+              f"eager| {dev['current']:.1e} / {dev['torch']:.1e} m", flush=True)
+    model.use_symmetry(())
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()
