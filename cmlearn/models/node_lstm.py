@@ -407,14 +407,12 @@ class NodeLSTMSurrogate(nn.Module):
         (B, K, 3): the LSTM, the force layers, the node embedding and the dense head."""
         B, K = wrench.shape[:2]
         if program:
-            h = self._lstm_last(f, program=True).reshape(B, K, -1)
-            wf = _program_mlp(self.wrench, wrench / self.f_scale)
-            emb = self.embed.weight.expand(B, K, -1)
-            return _program_mlp(self.head, torch.cat([h, wf, emb], -1)) * self.a_scale
-        h = (self._lstm_last(f) if self.training else self.lstm(f)[0][:, -1]).reshape(B, K, -1)
-        wf = self.wrench(wrench / self.f_scale)
+            h, mlp = self._lstm_last(f, program=True), _program_mlp
+        else:
+            h, mlp = self._lstm_last(f) if self.training else self.lstm(f)[0][:, -1], nn.Module.__call__
+        wf = mlp(self.wrench, wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
-        return self.head(torch.cat([h, wf, emb], -1)) * self.a_scale
+        return mlp(self.head, torch.cat([h.reshape(B, K, -1), wf, emb], -1)) * self.a_scale
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
         """The head's output (B, K, 3) at rest: every history frame the reference shape (B, n_tracked, 3),

@@ -85,7 +85,7 @@ def main(argv=None):
            "rounds": rounds, "calls": n, "gemm_templates": not a.quick, "platform": platform.platform(), "images": {}}
     for axes in settings:
         model.use_symmetry(axes)
-        rest = model.rest_accel(ref) if model.config.rest_anchor else None
+        rest = engine.rest_accel(ref)
         args = [hist, wrench, ref] + ([] if rest is None else [rest])
         with torch.no_grad():
             want = model(hist, wrench, ref, rest=rest)
