@@ -169,7 +169,8 @@ class Surrogate:
         full = (key,) + tuple((a.shape, a.stride(), a.dtype) for a in args)
         prog = self._programs.get(full)
         if prog is None:
-            prog = self._programs[full] = compile_program(make(True), args, gemm_templates=self._gemm_templates)
+            prog = self._programs[full] = compile_program(make(True), args, gemm_templates=self._gemm_templates,
+                                                             direct=True)
         return prog
 
     def scene_wrench(self, scene, n_steps: int) -> Tensor:

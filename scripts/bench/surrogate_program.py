@@ -1,5 +1,5 @@
-"""Benchmark: the compiled surrogate step's program in its current form against the form it replaced, same
-process, interleaved.
+"""Benchmark: the compiled surrogate step's program in its current form against the form it replaced, and its
+direct call against the wrapped one, same process, interleaved.
 
     python scripts/bench/surrogate_program.py [--checkpoint checkpoints/semicircle.pt] [--quick]
 
@@ -7,9 +7,11 @@ The current form (``NodeLSTMSurrogate.forward(..., program=True)``) computes the
 sigmoid and tanh through ``exp`` and the head's 3-output layer as a summed product
 (:func:`cmlearn.models.node_lstm._program_mlp`). The peer is the same model compiled with ``torch.sigmoid``,
 ``torch.tanh`` and the ``nn`` layers as they are (the form before 2026-11-29). Both are compiled by
-:func:`physics.programs.compile_program` for a batch-1 step of Simulation III's held-out scene with one, two
+:func:`physics.programs.compile_program` with ``direct=True``, as ``Surrogate.compile`` compiles them; the current
+form is also compiled without it (``current_wrapped``: the call path before 2026-11-29, through the AOT-autograd
+wrappers of ``torch._inductor.compile``). All are compiled for a batch-1 step of Simulation III's held-out scene with one, two
 and four mirror images in use (``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the
-fastest of ``--rounds`` means of ``--calls`` calls, the two forms timed in turn, so that a machine whose
+fastest of ``--rounds`` means of ``--calls`` calls, the programs timed in turn, so that a machine whose
 speed drifts (these shared CPUs drift by up to 2x over minutes) slows both alike. Last line: one JSON object.
 ``--quick``: one image, library matrix products (faster compiles), fewer calls.
 """
@@ -32,13 +34,17 @@ FORMS = {
 }
 
 
-def compile_form(model, form: str, args, gemm_templates: bool):
-    """The model's program-form step compiled with the activations and layers of ``form``."""
+VARIANTS = {"current": ("current", True), "torch": ("torch", True), "current_wrapped": ("current", False)}
+
+
+def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True):
+    """The model's program-form step compiled with the activations and layers of ``form``, called directly or
+    through the wrappers of ``torch._inductor.compile``."""
     saved = node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp
     node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = FORMS[form]
     try:
         return compile_program(lambda h, w, r, *rest: model(h, w, r, program=True, rest=rest[0] if rest else None),
-                               args, gemm_templates=gemm_templates)
+                               args, gemm_templates=gemm_templates, direct=direct)
     finally:
         node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = saved
 
@@ -89,16 +95,19 @@ def main(argv=None):
         args = [hist, wrench, ref] + ([] if rest is None else [rest])
         with torch.no_grad():
             want = model(hist, wrench, ref, rest=rest)
-        progs = {form: compile_form(model, form, args, not a.quick) for form in FORMS}
-        dev = {form: float((p(*args) - want).abs().max()) for form, p in progs.items()}
-        us = interleaved_us({form: (lambda p: lambda: p(*args))(p) for form, p in progs.items()}, rounds, n)
+        progs = {k: compile_form(model, form, args, not a.quick, direct) for k, (form, direct) in VARIANTS.items()}
+        dev = {k: float((p(*args) - want).abs().max()) for k, p in progs.items()}
+        us = interleaved_us({k: (lambda p: lambda: p(*args))(p) for k, p in progs.items()}, rounds, n)
         images = model.img_sign.shape[0]
         res["images"][str(images)] = {"axes": list(axes), "current_us": us["current"], "torch_us": us["torch"],
+                                      "current_wrapped_us": us["current_wrapped"],
                                       "time_ratio": us["current"] / us["torch"],
+                                      "direct_call_saves_us": us["current_wrapped"] - us["current"],
                                       "max_abs_vs_eager_m": dev}
         print(f"{images} of {model.mirror_sign.shape[0]} images: current {us['current']:.1f} us, torch's "
-              f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); max |compiled - "
-              f"eager| {dev['current']:.1e} / {dev['torch']:.1e} m", flush=True)
+              f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); the current form "
+              f"called through the wrappers {us['current_wrapped']:.1f} us; max |compiled - eager| "
+              + " / ".join(f"{v:.1e}" for v in dev.values()) + " m", flush=True)
     model.use_symmetry(())
     print(json.dumps(res))
     return res
