@@ -1,11 +1,16 @@
-"""Benchmark: batch-1 surrogate step latency against the LGVI step on the same scene, same run.
+"""Benchmark: batch-1 surrogate step latency against the LGVI step on the same scene, same run, interleaved.
 
     python scripts/bench/surrogate.py [--quick] [--task semicircle] [--scene NAME] [--checkpoint PATH] [--compile]
+                                      [--rounds R]
 
 Reports the surrogate's steps per second at batch 1 (eager and, with ``--compile``, compiled ahead
-of time by :meth:`cmlearn.surrogate.Surrogate.compile`; the compile time separately), the LGVI's steps per second on the task's scene (eager, float64), the
-wall time per simulated second of each and their ratio, and the errors of a short free-running
-rollout against the LGVI. A mirrored model is timed twice: with every mirror image (any input: the
+of time by :meth:`cmlearn.surrogate.Surrogate.compile`; the compile time separately), the LGVI's steps per second on
+the task's scene (eager, float64), the wall time per simulated second of each and their ratio, and the errors of a
+short free-running rollout against the LGVI. Every figure is timed in ``--rounds`` rounds, each of which times every
+surrogate form and the LGVI once in turn (a block of steps each; the LGVI's blocks continue its rollout of the
+scene): a ratio is the median over the rounds of that round's ratio (``*_rounds``: min, median, max), so that a
+machine whose speed drifts (these shared CPUs drift by up to 2x over minutes) slows both sides of it alike; a rate is
+the median of its rounds. A mirrored model is timed twice: with every mirror image (any input: the
 ``surrogate_step_*`` keys) and with the images the scene's own symmetries leave, as ``run_scene`` steps
 that scene (the ``*_symmetric`` keys, with ``scene_symmetry_axes``; Simulation III's printed push keeps
 one of four). The magnetic rod runs in closed loop (each step also computes the magnets'
@@ -21,6 +26,7 @@ import argparse
 import json
 import time
 from dataclasses import asdict, dataclass, replace
+from statistics import median
 
 import torch
 
@@ -38,6 +44,32 @@ class Args:
     quick: bool = False
     compile: bool = False
     threads: int = 1
+    rounds: int = 0
+
+
+def interleaved(timers: dict, rounds: int) -> dict[str, list[float]]:
+    """Each timer (a call returning seconds per simulated second) called once per round, in turn."""
+    out = {k: [] for k in timers}
+    for _ in range(rounds):
+        for k, f in timers.items():
+            out[k].append(f())
+    return out
+
+
+def lgvi_blocks(scene, steps: int, compiled: bool):
+    """Seconds per simulated second of the eager (or compiled, 4 steps a call) LGVI over its next ``steps`` steps
+    of ``scene``, continuing one rollout from call to call."""
+    sim = scene.make_integrator()
+    cfg = scene.initial_configuration()
+    state = [sim.initial_state(p=cfg["p"], R=cfg.get("R"))]
+    run = (lambda st: sim.compiled_rollout(st, n_steps=steps, steps_per_call=4)) if compiled else \
+        (lambda st: sim.simulate(st, n_steps=steps, record_every=steps))
+
+    def block() -> float:
+        t0 = time.perf_counter()
+        state[0] = run(state[0])[0]
+        return (time.perf_counter() - t0) / (steps * scene.dt)
+    return block
 
 
 def main(argv=None):
@@ -48,127 +80,144 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--compile", action="store_true")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rounds", type=int, default=0, help="rounds of interleaved timing (default 9, --quick 3)")
     a = Args(**vars(ap.parse_args(argv)))
+    if a.rounds < 0 or a.threads < 1:
+        raise SystemExit("--rounds must be >= 0 and --threads >= 1")
+    rounds = a.rounds or (3 if a.quick else 9)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
-    engine = Surrogate.load(find_checkpoint(task.name, a.checkpoint or None), task=task.name)
+    path = find_checkpoint(task.name, a.checkpoint or None)
+    engine = Surrogate.load(path, task=task.name)
     scene = task.scene_by_name(a.scene or task.scene)
     dur = 0.2 if a.quick else 1.0
     short = replace(scene, duration=dur)
-    n = 300 if a.quick else 3000
+    n_sur = int(round(dur / task.delta))
+    n_block = 30 if a.quick else 300  # timed surrogate steps a round (eager; compiled 4x as many)
+    lgvi_steps = task.record_every(scene) * (2 if a.quick else 6)  # LGVI steps a round: a few surrogate steps' worth
     mirrored = bool(engine.model.config.reflections) and not task.custom
     axes = engine.scene_symmetry(scene, engine.scene_wrench(scene, int(round(scene.duration / task.delta)))) \
         if mirrored else ()
-    step_s = engine.step_latency(n=n)
-    res = {"surrogate_step_hz": 1 / step_s, "surrogate_step_us": step_s * 1e6}
+    res = {"scene_symmetry_axes": list(axes)} if mirrored else {}
+    per_sim = lambda step_s: step_s / task.delta  # noqa: E731 - seconds per simulated second of a step's latency
+    sur = {"eager": lambda: per_sim(engine.step_latency(n=n_block, warmup=5))}
     if mirrored:
-        step_y = engine.step_latency(n=n, scene=scene)
-        res.update({"scene_symmetry_axes": list(axes), "surrogate_step_hz_symmetric": 1 / step_y,
-                    "surrogate_step_us_symmetric": step_y * 1e6})
-    n_sur = int(round(dur / task.delta))
+        sur["eager_symmetric"] = lambda: per_sim(engine.step_latency(n=n_block, warmup=5, scene=scene))
+    compiled = None
+    if a.compile:
+        compiled = Surrogate.load(path, task=task.name)
+        t0 = time.perf_counter()
+        compiled.compile()
+        compiled.step_latency(n=5, warmup=1)
+        res["compile_s"] = time.perf_counter() - t0
+        sur["compiled"] = lambda: per_sim(compiled.step_latency(n=4 * n_block, warmup=20))
+        if mirrored:
+            compiled.step_latency(n=5, warmup=1, scene=scene)  # its own program
+            sur["compiled_symmetric"] = lambda: per_sim(compiled.step_latency(n=4 * n_block, warmup=20, scene=scene))
+    lgvi = {}
     if task.custom:
         # the magnetic rod runs in closed loop: each step also computes the magnets' wrench from the model's own
         # last frame and the currents, so a simulated second costs the closed loop's wall time (the currents'
         # evaluation included), not the bare step's; in the tabulated field (the engine's), and in the exact
-        # field for comparison (the evaluation's)
+        # field for comparison (the evaluation's). Its LGVI runs the scene from rest through the task's own module,
+        # a 1 / rounds share of the duration a round
         run, latency = task.hook("run_scene"), task.hook("closed_loop_latency")
         t0 = time.perf_counter()
         run(engine, short)  # warm-up, and the field table
         res["closed_loop_first_run_s"] = time.perf_counter() - t0  # the field table built in it
-        wall_cl = run(engine, short)[1]
-        wall_exact = run(engine, short, exact_field=True)[1]
-        lat = latency(engine, short, n=n // 10)
-        res.update({"surrogate_closed_loop_step_hz": n_sur / wall_cl,
-                    "surrogate_closed_loop_step_us": wall_cl / n_sur * 1e6, "surrogate_closed_loop_latency_us": lat * 1e6,
-                    "surrogate_closed_loop_exact_field_step_hz": n_sur / wall_exact})
-    if a.compile:
-        t0 = time.perf_counter()
-        engine.compile()
-        engine.step_latency(n=5, warmup=1)
-        res["compile_s"] = time.perf_counter() - t0
-        step_c = engine.step_latency(n=n)
-        res.update({"surrogate_step_hz_compiled": 1 / step_c, "surrogate_step_us_compiled": step_c * 1e6})
-        if mirrored:
-            engine.step_latency(n=5, warmup=1, scene=scene)  # its own program
-            step_yc = engine.step_latency(n=n, scene=scene)
-            res.update({"surrogate_step_hz_symmetric_compiled": 1 / step_yc,
-                        "surrogate_step_us_symmetric_compiled": step_yc * 1e6})
-        if task.custom:
+        sur.update({"closed_loop": lambda: run(engine, short)[1] / dur,
+                    "closed_loop_exact_field": lambda: run(engine, short, exact_field=True)[1] / dur})
+        if a.compile:
             t0 = time.perf_counter()
-            run(engine, short)  # compiles the closed loop's program
+            run(compiled, short)  # compiles the closed loop's program
             res["closed_loop_compile_s"] = time.perf_counter() - t0
-            wall_clc = run(engine, short)[1]
-            lat_c = latency(engine, short, n=n)
-            res.update({"surrogate_closed_loop_step_hz_compiled": n_sur / wall_clc,
-                        "surrogate_closed_loop_step_us_compiled": wall_clc / n_sur * 1e6,
-                        "surrogate_closed_loop_latency_us_compiled": lat_c * 1e6})
-    _, _, lgvi_wall = scene_rollout(task, short)
-    lgvi_steps = int(round(dur / scene.dt))
-    sur_per_sim_s = step_s / task.delta
-    if task.custom:
-        sur_per_sim_s = wall_cl / dur
-    lgvi_per_sim_s = lgvi_wall / dur
-    if task.custom and a.compile:
-        res["speedup_per_simulated_second_compiled"] = lgvi_per_sim_s * dur / wall_clc
-    # the compiled ratios: the LGVI's own compiled path (torch.compile, 4 steps a call) on the same rollout, and
-    # the compiled step against it; not for a task with a module of its own (the magnetic rod): its coil field
-    # reads the time as a Python number, so torch.compile would recompile at every step and time its compiler
-    compiled_ratios = a.compile and not task.custom
-    if compiled_ratios:
-        sim = short.make_integrator()
-        cfg = short.initial_configuration()
-        st = sim.initial_state(p=cfg["p"], R=cfg.get("R"))
-        t0 = time.perf_counter()
-        sim.compiled_rollout(st, n_steps=4, steps_per_call=4)
-        res["lgvi_compile_s"] = time.perf_counter() - t0
-        n_c = lgvi_steps - lgvi_steps % 4
-        t0 = time.perf_counter()
-        sim.compiled_rollout(st, n_steps=n_c, steps_per_call=4)
-        lgvi_c_per_sim_s = (time.perf_counter() - t0) / (n_c * scene.dt)
-        res.update({"lgvi_step_hz_compiled": 1 / (lgvi_c_per_sim_s * scene.dt),
-                    "speedup_per_simulated_second_both_compiled": lgvi_c_per_sim_s * task.delta / step_c})
-        if mirrored:
-            res.update({"speedup_per_simulated_second_symmetric_compiled": lgvi_per_sim_s * task.delta / step_yc,
-                        "speedup_per_simulated_second_symmetric_both_compiled":
-                            lgvi_c_per_sim_s * task.delta / step_yc})
+            sur["closed_loop_compiled"] = lambda: run(compiled, short)[1] / dur
+        part = replace(scene, duration=task.delta * max(1, round(n_sur / rounds)))
+        lgvi["eager"] = lambda: scene_rollout(task, part)[2] / part.duration
+    else:
+        lgvi["eager"] = lgvi_blocks(scene, lgvi_steps, compiled=False)
+        lgvi["eager"]()  # warm-up
+        if a.compile:
+            # the LGVI's own compiled path (torch.compile, 4 steps a call); not for a task with a module of its own
+            # (the magnetic rod): its coil field reads the time as a Python number, so torch.compile would recompile
+            # at every step and time its compiler
+            lgvi["compiled"] = lgvi_blocks(scene, lgvi_steps - lgvi_steps % 4, compiled=True)
+            t0 = time.perf_counter()
+            lgvi["compiled"]()
+            res["lgvi_compile_s"] = time.perf_counter() - t0
+    times = interleaved({**{("sur", k): f for k, f in sur.items()}, **{("lgvi", k): f for k, f in lgvi.items()}}, rounds)
+    for (side, k), v in times.items():  # rates: the median round
+        if side == "lgvi":
+            res["lgvi_step_hz" + ("" if k == "eager" else "_compiled")] = 1 / (median(v) * scene.dt)
+        elif k.startswith("closed_loop"):
+            key = "surrogate_" + k + "_step_hz"
+            res[key.replace("_compiled_step_hz", "_step_hz_compiled")] = 1 / (median(v) * task.delta)
+        else:
+            name = {"eager": "", "eager_symmetric": "_symmetric", "compiled": "_compiled",
+                    "compiled_symmetric": "_symmetric_compiled"}[k]
+            res["surrogate_step_hz" + name] = 1 / (median(v) * task.delta)
+            res["surrogate_step_us" + name] = median(v) * task.delta * 1e6
+
+    def ratio(key: str, sur_key: str, lgvi_key: str = "eager"):
+        """The median over rounds of the LGVI's wall time per simulated second over the surrogate's."""
+        r = sorted(lg / s for lg, s in zip(times[("lgvi", lgvi_key)], times[("sur", sur_key)]))
+        res[key] = median(r)
+        res[key + "_rounds"] = [r[0], median(r), r[-1]]
+    base = "closed_loop" if task.custom else "eager"
+    ratio("speedup_per_simulated_second", base)
     if mirrored:
-        res["speedup_per_simulated_second_symmetric"] = lgvi_per_sim_s * task.delta / step_y
+        ratio("speedup_per_simulated_second_symmetric", "eager_symmetric")
+    if a.compile:
+        ratio("speedup_per_simulated_second_compiled", "closed_loop_compiled" if task.custom else "compiled")
+        if not task.custom:
+            ratio("speedup_per_simulated_second_both_compiled", "compiled", "compiled")
+            if mirrored:
+                ratio("speedup_per_simulated_second_symmetric_compiled", "compiled_symmetric")
+                ratio("speedup_per_simulated_second_symmetric_both_compiled", "compiled_symmetric", "compiled")
+    if task.custom:
+        res.update({"surrogate_closed_loop_step_us": 1e6 / res["surrogate_closed_loop_step_hz"],
+                    "surrogate_closed_loop_latency_us": latency(engine, short, n=n_block) * 1e6})
+        if a.compile:
+            res.update({"surrogate_closed_loop_step_us_compiled": 1e6 / res["surrogate_closed_loop_step_hz_compiled"],
+                        "surrogate_closed_loop_latency_us_compiled": latency(compiled, short, n=4 * n_block) * 1e6})
+    lgvi_per_sim_s, sur_per_sim_s = median(times[("lgvi", "eager")]), median(times[("sur", base)])
     check = short_check(engine, scene.name, dur)
     res.update({
-        "lgvi_step_hz": lgvi_steps / lgvi_wall, "lgvi_wall_per_sim_s": lgvi_per_sim_s,
-        "surrogate_wall_per_sim_s": sur_per_sim_s, "speedup_per_simulated_second": lgvi_per_sim_s / sur_per_sim_s,
-        **({"speedup_per_simulated_second_compiled": lgvi_per_sim_s * task.delta / step_c}
-           if compiled_ratios else {}),
+        "lgvi_wall_per_sim_s": lgvi_per_sim_s, "surrogate_wall_per_sim_s": sur_per_sim_s, "rounds": rounds,
         "quick_rollout_max_err_mm": check["max_err_mm"], "quick_rollout_s": dur, "scene": scene.name,
         "surrogate_delta_s": task.delta, "lgvi_dt_s": scene.dt, "n_tracked": len(task.tracked),
         "n_modeled": len(task.modeled), "lgvi_nodes": scene.rod.n_nodes, "batch": 1, "threads": a.threads,
         "dtype_surrogate": "float32", "dtype_lgvi": "float64", "device": "cpu", "args": asdict(a)})
-    print(f"{task.name} ({scene.name}): surrogate {res['surrogate_step_hz']:.0f} steps/s at batch 1 ({step_s * 1e6:.0f} us), "
-          f"LGVI {res['lgvi_step_hz']:.0f} steps/s on {scene.rod.n_nodes} nodes")
+    span = lambda key: "{:.0f}-{:.0f}x".format(res[key + "_rounds"][0], res[key + "_rounds"][2])  # noqa: E731
+    print(f"{task.name} ({scene.name}), medians of {rounds} interleaved rounds: surrogate "
+          f"{res['surrogate_step_hz']:.0f} steps/s at batch 1 ({res['surrogate_step_us']:.0f} us), LGVI "
+          f"{res['lgvi_step_hz']:.0f} steps/s on {scene.rod.n_nodes} nodes")
     if task.custom:
         print(f"  closed loop (step and the magnets' wrench, tabulated field): {res['surrogate_closed_loop_step_hz']:.0f} "
               f"steps/s ({res['surrogate_closed_loop_step_us']:.0f} us; a step alone, currents given, "
               f"{res['surrogate_closed_loop_latency_us']:.0f} us); in the exact field "
               f"{res['surrogate_closed_loop_exact_field_step_hz']:.0f} steps/s")
     print(f"  wall per simulated second: LGVI {lgvi_per_sim_s:.2f} s, surrogate {sur_per_sim_s * 1e3:.2f} ms "
-          f"-> {res['speedup_per_simulated_second']:.0f}x")
+          f"-> {res['speedup_per_simulated_second']:.0f}x (rounds {span('speedup_per_simulated_second')})")
     if a.compile:
-        print(f"  compiled surrogate step: {res['surrogate_step_hz_compiled']:.0f} steps/s ({step_c * 1e6:.0f} us, "
-              f"compile {res['compile_s']:.1f} s)" + (
-                  f" -> {res['speedup_per_simulated_second_compiled']:.0f}x per simulated second; against the LGVI "
-                  f"compiled too ({res['lgvi_step_hz_compiled']:.0f} steps/s): "
-                  f"{res['speedup_per_simulated_second_both_compiled']:.0f}x" if compiled_ratios else
+        print(f"  compiled surrogate step: {res['surrogate_step_hz_compiled']:.0f} steps/s "
+              f"({res['surrogate_step_us_compiled']:.0f} us, compile {res['compile_s']:.1f} s)" + (
                   f"; its closed loop compiled ({res['closed_loop_compile_s']:.1f} s): "
                   f"{res['surrogate_closed_loop_step_hz_compiled']:.0f} steps/s with the currents' evaluation, a step "
                   f"alone {res['surrogate_closed_loop_latency_us_compiled']:.0f} us -> "
-                  f"{res['speedup_per_simulated_second_compiled']:.0f}x per simulated second (its LGVI's coil field "
-                  "recompiles every step, so the LGVI runs eager)"))
+                  f"{res['speedup_per_simulated_second_compiled']:.0f}x per simulated second (rounds "
+                  f"{span('speedup_per_simulated_second_compiled')}; its LGVI's coil field recompiles every step, so "
+                  "the LGVI runs eager)" if task.custom else
+                  f" -> {res['speedup_per_simulated_second_compiled']:.0f}x per simulated second (rounds "
+                  f"{span('speedup_per_simulated_second_compiled')}); against the LGVI compiled too "
+                  f"({res['lgvi_step_hz_compiled']:.0f} steps/s): {res['speedup_per_simulated_second_both_compiled']:.0f}x"))
     if mirrored:
         print(f"  with the scene's symmetries (axes {axes}: {engine.model.mirror_sign.shape[0] >> len(axes)} of "
               f"{engine.model.mirror_sign.shape[0]} mirror images): {res['surrogate_step_hz_symmetric']:.0f} steps/s "
               f"-> {res['speedup_per_simulated_second_symmetric']:.0f}x" + (
                   f"; compiled {res['surrogate_step_hz_symmetric_compiled']:.0f} steps/s -> "
-                  f"{res['speedup_per_simulated_second_symmetric_compiled']:.0f}x (both compiled: "
+                  f"{res['speedup_per_simulated_second_symmetric_compiled']:.0f}x (rounds "
+                  f"{span('speedup_per_simulated_second_symmetric_compiled')}; both compiled: "
                   f"{res['speedup_per_simulated_second_symmetric_both_compiled']:.0f}x)" if a.compile else ""))
     print(f"  free-running error over {dur} s of {scene.name}: {check['max_err_mm']:.2f} mm")
     print(json.dumps(res))
