@@ -605,11 +605,11 @@ def test_report_loop_swing_against_the_lgvi(tmp_path):
 
 
 def test_bench_surrogate_program_quick(tmp_path):
-    """Both program forms of the mirrored Simulation III step, and the current one through both call paths, compile
-    and equal the eager step to round-off; the timings are there (not compared: a shared CI machine)."""
+    """The current program form of the mirrored Simulation III step and the three it replaced compile and equal the
+    eager step to round-off; the timings are there (not compared: a shared CI machine)."""
     res = run_script([str(ROOT / "scripts/bench/surrogate_program.py"), "--quick",
                       "--checkpoint", str(ROOT / "checkpoints/semicircle.pt")], tmp_path)
     (images, fig), = res["images"].items()
     assert images == "1" and fig["axes"] == [2, 0] and res["gemm_templates"] is False
-    assert fig["current_us"] > 0 and fig["torch_us"] > 0 and fig["current_wrapped_us"] > 0
-    assert len(fig["max_abs_vs_eager_m"]) == 3 and max(fig["max_abs_vs_eager_m"].values()) < 1e-7
+    assert min(fig["current_us"], fig["torch_us"], fig["current_wrapped_us"], fig["input_product_first_us"]) > 0
+    assert len(fig["max_abs_vs_eager_m"]) == 4 and max(fig["max_abs_vs_eager_m"].values()) < 1e-7

@@ -353,16 +353,31 @@ class NodeLSTMSurrogate(nn.Module):
                 self.use_symmetry(())
         return super().train(mode)
 
-    def _lstm_last(self, f: Tensor, program: bool = False) -> Tensor:
+    def _lstm_last(self, f: Tensor, program: bool = False, stacked: bool | None = None) -> Tensor:
         """The LSTM's last output for (S, W, 18) from the zero state, as its gate equations (the first
         recurrent product vanishes): for compiled programs, where it beats the decomposed ``nn.LSTM``, and
-        training. ``program``: with the activations of :func:`_program_sigmoid` and :func:`_program_tanh`."""
+        training (the frames unbound, not indexed: the backward stacks instead of filling zeros per frame).
+        ``program``: with the activations of :func:`_program_sigmoid` and :func:`_program_tanh`. ``stacked`` (by
+        default in the program form): each frame's features and the last output in one product against both
+        weight matrices, instead of all frames' input product first (``python scripts/bench/surrogate_program.py``:
+        4 % less time for the compiled two-image Simulation III step)."""
         lstm = self.lstm
         sigmoid, tanh = (_program_sigmoid, _program_tanh) if program else (torch.sigmoid, torch.tanh)
-        gx = f @ lstm.weight_ih_l0.t() + (lstm.bias_ih_l0 + lstm.bias_hh_l0)
+        bias = lstm.bias_ih_l0 + lstm.bias_hh_l0
+        if program if stacked is None else stacked:
+            both = torch.cat([lstm.weight_ih_l0, lstm.weight_hh_l0], 1).t()
+            frames = f.unbind(1)
+
+            def gates(x: Tensor, h: Tensor | None) -> Tensor:
+                return (x @ lstm.weight_ih_l0.t() if h is None else torch.cat([x, h], -1) @ both) + bias
+        else:
+            frames = (f @ lstm.weight_ih_l0.t() + bias).unbind(1)
+
+            def gates(x: Tensor, h: Tensor | None) -> Tensor:
+                return x if h is None else x + h @ lstm.weight_hh_l0.t()
         h = c = None
-        for gt in gx.unbind(1):  # unbind, not indexing: its backward stacks instead of filling zeros per step
-            g = gt if h is None else gt + h @ lstm.weight_hh_l0.t()
+        for x in frames:
+            g = gates(x, h)
             i, fg, gg, o = g.chunk(4, -1)
             i, gg, o = sigmoid(i), tanh(gg), sigmoid(o)
             c = i * gg if c is None else sigmoid(fg) * c + i * gg

@@ -1,23 +1,29 @@
-"""Benchmark: the compiled surrogate step's program in its current form against the form it replaced, and its
-direct call against the wrapped one, same process, interleaved.
+"""Benchmark: the compiled surrogate step's program in its current form against the forms it replaced, same
+process, interleaved.
 
     python scripts/bench/surrogate_program.py [--checkpoint checkpoints/semicircle.pt] [--quick]
 
-The current form (``NodeLSTMSurrogate.forward(..., program=True)``) computes the LSTM's and the dense layers'
-sigmoid and tanh through ``exp`` and the head's 3-output layer as a summed product
-(:func:`cmlearn.models.node_lstm._program_mlp`). The peer is the same model compiled with ``torch.sigmoid``,
-``torch.tanh`` and the ``nn`` layers as they are (the form before 2026-11-29). Both are compiled by
-:func:`physics.programs.compile_program` with ``direct=True``, as ``Surrogate.compile`` compiles them; the current
-form is also compiled without it (``current_wrapped``: the call path before 2026-11-29, through the AOT-autograd
-wrappers of ``torch._inductor.compile``). All are compiled for a batch-1 step of Simulation III's held-out scene with one, two
-and four mirror images in use (``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the
-fastest of ``--rounds`` means of ``--calls`` calls, the programs timed in turn, so that a machine whose
-speed drifts (these shared CPUs drift by up to 2x over minutes) slows both alike. Last line: one JSON object.
-``--quick``: one image, library matrix products (faster compiles), fewer calls.
+The current form (``NodeLSTMSurrogate.forward(..., program=True)``, compiled by
+:func:`physics.programs.compile_program` with ``direct=True`` as ``Surrogate.compile`` compiles it) computes the
+LSTM's and the dense layers' sigmoid and tanh through ``exp``, the head's 3-output layer as a summed product
+(:func:`cmlearn.models.node_lstm._program_mlp`) and each LSTM frame's gates in one product of the frame's features
+and the last output against both weight matrices. Each peer differs from it in one thing:
+
+* ``torch``: ``torch.sigmoid``, ``torch.tanh`` and the ``nn`` layers as they are (before 2026-11-29);
+* ``current_wrapped``: called through the AOT-autograd wrappers of ``torch._inductor.compile`` (``direct=False``,
+  before 2026-11-29, later);
+* ``input_product_first``: the LSTM's input product for all frames first, then the recurrent products (the same).
+
+All are compiled for a batch-1 step of Simulation III's held-out scene with one, two and four mirror images in use
+(``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the fastest of ``--rounds`` means of
+``--calls`` calls, the programs timed in turn, so that a machine whose speed drifts (these shared CPUs drift by up
+to 2x over minutes) slows all alike. Last line: one JSON object. ``--quick``: one image, library matrix products
+(faster compiles), fewer calls.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import platform
 import time
@@ -34,19 +40,23 @@ FORMS = {
 }
 
 
-VARIANTS = {"current": ("current", True), "torch": ("torch", True), "current_wrapped": ("current", False)}
+# name: (activations and layers, called directly, the LSTM's products stacked per frame)
+VARIANTS = {"current": ("current", True, True), "torch": ("torch", True, True),
+            "current_wrapped": ("current", False, True), "input_product_first": ("current", True, False)}
 
 
-def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True):
+def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True, stacked: bool = True):
     """The model's program-form step compiled with the activations and layers of ``form``, called directly or
-    through the wrappers of ``torch._inductor.compile``."""
+    through the wrappers of ``torch._inductor.compile``, its LSTM's products ``stacked`` per frame or not."""
     saved = node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp
     node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = FORMS[form]
+    model._lstm_last = functools.partial(type(model)._lstm_last, model, stacked=stacked)
     try:
         return compile_program(lambda h, w, r, *rest: model(h, w, r, program=True, rest=rest[0] if rest else None),
                                args, gemm_templates=gemm_templates, direct=direct)
     finally:
         node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = saved
+        del model._lstm_last
 
 
 def interleaved_us(calls: dict, rounds: int, n: int) -> dict:
@@ -95,18 +105,21 @@ def main(argv=None):
         args = [hist, wrench, ref] + ([] if rest is None else [rest])
         with torch.no_grad():
             want = model(hist, wrench, ref, rest=rest)
-        progs = {k: compile_form(model, form, args, not a.quick, direct) for k, (form, direct) in VARIANTS.items()}
+        progs = {k: compile_form(model, form, args, not a.quick, direct, stacked)
+                 for k, (form, direct, stacked) in VARIANTS.items()}
         dev = {k: float((p(*args) - want).abs().max()) for k, p in progs.items()}
         us = interleaved_us({k: (lambda p: lambda: p(*args))(p) for k, p in progs.items()}, rounds, n)
         images = model.img_sign.shape[0]
         res["images"][str(images)] = {"axes": list(axes), "current_us": us["current"], "torch_us": us["torch"],
                                       "current_wrapped_us": us["current_wrapped"],
+                                      "input_product_first_us": us["input_product_first"],
                                       "time_ratio": us["current"] / us["torch"],
                                       "direct_call_saves_us": us["current_wrapped"] - us["current"],
                                       "max_abs_vs_eager_m": dev}
         print(f"{images} of {model.mirror_sign.shape[0]} images: current {us['current']:.1f} us, torch's "
               f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); the current form "
-              f"called through the wrappers {us['current_wrapped']:.1f} us; max |compiled - eager| "
+              f"called through the wrappers {us['current_wrapped']:.1f} us, with the LSTM's input product first "
+              f"{us['input_product_first']:.1f} us; max |compiled - eager| "
               + " / ".join(f"{v:.1e}" for v in dev.values()) + " m", flush=True)
     model.use_symmetry(())
     print(json.dumps(res))
