@@ -203,6 +203,7 @@ class NodeLSTMSurrogate(nn.Module):
         for name in ("_feature_matrix", "_feature_rows", "_feature_blocks"):  # freeze_features; buffers, so that
             for part in ("", "_group"):                                        # .to(device) moves them too
                 self.register_buffer(name + part, None, persistent=False)     # (images in use; every image)
+        self.register_buffer("_lstm_stacked", None, persistent=False)  # freeze_features: (18 + hidden, 4 hidden)
         self.use_symmetry(())  # the images in use (all of G) and the stabiliser projected on (none)
 
     def invariant_axes(self, frames: Tensor, wrench: Tensor, rtol: float = 1e-6) -> tuple[int, ...]:
@@ -304,7 +305,9 @@ class NodeLSTMSurrogate(nn.Module):
         and its two neighbours' positions: the matrix from those ``(eta + 2) * 9`` numbers to its
         ``(eta + 1) * 18`` features (eagerly one matrix product is faster, compiled the blocks).
         Every mirror image's matrices are kept; those of the images in use (:meth:`use_symmetry`) are
-        taken from them. Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``)
+        taken from them. The LSTM's stacked weights (:meth:`_lstm_last`) are kept too, so that a compiled
+        program holds them as one constant (a product with weights computed in the program has no C++ GEMM
+        template). Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``)
         returns to the explicit computation."""
         W, N, K = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel()
         D = (W + 1) * N * 3
@@ -331,8 +334,14 @@ class NodeLSTMSurrogate(nn.Module):
         self._feature_matrix_group = torch.stack([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G, K * W * 18)
         self._feature_rows_group = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 9)
         self._feature_blocks_group = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 9, W * 18)
+        self._lstm_stacked = self._stacked_lstm_weights().contiguous()  # a constant of the program, not an op in it
         self._select_features()
         return self
+
+    def _stacked_lstm_weights(self) -> Tensor:
+        """The LSTM's input and recurrent weights stacked, (18 + hidden, 4 hidden): the right factor of
+        ``[features, last output] @ W`` (:meth:`_lstm_last`)."""
+        return torch.cat([self.lstm.weight_ih_l0, self.lstm.weight_hh_l0], 1).t()
 
     def _select_features(self) -> None:
         """The frozen matrices of the images in use, from every image's."""
@@ -345,6 +354,7 @@ class NodeLSTMSurrogate(nn.Module):
     def unfreeze_features(self) -> None:
         self._feature_matrix = self._feature_rows = self._feature_blocks = None
         self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
+        self._lstm_stacked = None
 
     def train(self, mode: bool = True):
         if mode:
@@ -365,7 +375,7 @@ class NodeLSTMSurrogate(nn.Module):
         sigmoid, tanh = (_program_sigmoid, _program_tanh) if program else (torch.sigmoid, torch.tanh)
         bias = lstm.bias_ih_l0 + lstm.bias_hh_l0
         if program if stacked is None else stacked:
-            both = torch.cat([lstm.weight_ih_l0, lstm.weight_hh_l0], 1).t()
+            both = self._stacked_lstm_weights() if self._lstm_stacked is None else self._lstm_stacked
             frames = f.unbind(1)
 
             def gates(x: Tensor, h: Tensor | None) -> Tensor:
