@@ -102,7 +102,7 @@ def main(argv=None):
     n_block = 30 if a.quick else 300  # timed surrogate steps a round (eager; compiled 4x as many)
     # the LGVI's blocks cover the first `window` s of the scene (its whole duration on Simulation III), a share a round
     window = min(scene.duration, 0.2 if a.quick else 2.0)
-    lgvi_steps = max(4, 4 * round(window / scene.dt / rounds / 4))
+    lgvi_steps = max(4, 4 * int(window / scene.dt / rounds / 4 + 1e-9))
     mirrored = bool(engine.model.config.reflections) and not task.custom
     axes = engine.scene_symmetry(scene, engine.scene_wrench(scene, int(round(scene.duration / task.delta)))) \
         if mirrored else ()
