@@ -369,8 +369,8 @@ class NodeLSTMSurrogate(nn.Module):
         training (the frames unbound, not indexed: the backward stacks instead of filling zeros per frame).
         ``program``: with the activations of :func:`_program_sigmoid` and :func:`_program_tanh`. ``stacked`` (by
         default in the program form): each frame's features and the last output in one product against both
-        weight matrices, instead of all frames' input product first (``python scripts/bench/surrogate_program.py``:
-        4 % less time for the compiled two-image Simulation III step)."""
+        weight matrices, instead of all frames' input product first (``python scripts/bench/surrogate_program.py``,
+        two runs: 6-9 % less time for the compiled four-image Simulation III step, within +-2 us with one or two)."""
         lstm = self.lstm
         sigmoid, tanh = (_program_sigmoid, _program_tanh) if program else (torch.sigmoid, torch.tanh)
         bias = lstm.bias_ih_l0 + lstm.bias_hh_l0
