@@ -98,7 +98,7 @@ def test_bench_surrogate_quick(tmp_path, task):
     for key in ("surrogate_step_hz", "lgvi_step_hz", "speedup_per_simulated_second", "quick_rollout_max_err_mm"):
         assert key in res
     assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1
-    lo, mid, hi = res["speedup_per_simulated_second_rounds"]  # interleaved rounds: the ratio is their median
+    lo, mid, hi = res["speedup_per_simulated_second_rounds"]  # interleaved rounds: the ratio is their mean
     assert lo <= mid == res["speedup_per_simulated_second"] <= hi and res["rounds"] == 3
     if task == "semicircle":  # the printed push keeps one of the four mirror images
         assert res["scene_symmetry_axes"] == [0, 2] and res["surrogate_step_hz_symmetric"] > 0
