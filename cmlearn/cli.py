@@ -9,7 +9,7 @@
     ``summary.json`` into ``--out`` (default ``./out/simulate_<scene>``), each written to a
     temporary file and renamed into place.
 
-``cmlearn compare [--scene NAME] [--checkpoint PATH] [--duration S] [--out DIR]``
+``cmlearn compare [--scene NAME] [--checkpoint PATH] [--duration S] [--out DIR] [--compile]``
     run the LGVI and the shipped LSTM surrogate on a scene (default the held-out semicircle) and
     report per-axis errors, RMSE(t), wall times and the speed-up (:mod:`cmlearn.compare`).
 
@@ -76,6 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default checkpoints/<task>.pt)")
     p_cmp.add_argument("--duration", type=_positive_float, default=None, help="simulated seconds")
     p_cmp.add_argument("--out", type=Path, default=None, help="output folder (default ./out/compare_<scene>)")
+    p_cmp.add_argument("--compile", action="store_true",
+                       help="compile the surrogate's step ahead of time (20-50 s, timed apart) and time its compiled rollout")
     p_cmp.set_defaults(func=_cmd_compare)
     return parser
 
@@ -227,7 +229,7 @@ def _cmd_compare(args) -> int:
     from .surrogate import CheckpointError, SurrogateDivergence
 
     try:
-        run_compare(args.scene, args.checkpoint, args.duration, args.out)
+        run_compare(args.scene, args.checkpoint, args.duration, args.out, compile=args.compile)
     except (KeyError, FileNotFoundError, CheckpointError) as e:
         print(f"cmlearn compare: {e.args[0] if e.args else e}", file=sys.stderr)
         return 2

@@ -2,7 +2,9 @@
 
 Runs both from the scene's initial state, prints per-axis maximum/mean absolute errors of the
 nodes of interest (mm and % of rod length), an RMSE(t) summary, the wall time of each and the
-speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summary.json``. On the
+speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summary.json``. With ``compile``
+(``--compile``) the surrogate's step is compiled ahead of time (:meth:`cmlearn.surrogate.Surrogate.compile`) in a
+first rollout, timed apart, and the second rollout is the one timed and compared. On the
 magnetic rod (``magnetic_rod``, ``magnetic_rod_heldout``) it also prints the magnets' orientation errors
 in degrees of the surrogate (closed loop) and of the static Cosserat model, and the latter's wall time.
 """
@@ -14,7 +16,8 @@ from pathlib import Path
 
 from .io import atomic_write
 
-__all__ = ["DEFAULT_COMPARE_SCENE", "task_for_scene", "find_checkpoint", "compare_scene", "run_compare"]
+__all__ = ["DEFAULT_COMPARE_SCENE", "task_for_scene", "find_checkpoint", "surrogate_rollout", "compare_scene",
+           "run_compare"]
 
 DEFAULT_COMPARE_SCENE = "semicircle_heldout"
 
@@ -40,6 +43,20 @@ def find_checkpoint(task_name: str, explicit: str | Path | None = None) -> Path:
                             "pass --checkpoint PATH")
 
 
+def surrogate_rollout(engine, scene, compile: bool = False) -> tuple:
+    """``(positions, wall seconds, facts)`` of ``engine.run_scene(scene)``; with ``compile`` the engine is compiled and
+    the scene run twice, the first run compiling its programs (``facts``: that run's time less the second's, as
+    ``surrogate_compile_s``), the second timed."""
+    if not compile:
+        return (*engine.run_scene(scene), {"surrogate_compiled": False})
+    engine.compile()
+    t0 = time.perf_counter()
+    engine.run_scene(scene)
+    first = time.perf_counter() - t0
+    p, wall = engine.run_scene(scene)
+    return p, wall, {"surrogate_compiled": True, "surrogate_compile_s": first - wall}
+
+
 def node_errors(task, scene, p_sur, p_ref) -> tuple[dict, list, list]:
     """Per node of interest: per-axis max/mean absolute errors and the RMSE(t) summary (mm); with the
     nodes' slots in the surrogate's output and their labels."""
@@ -56,7 +73,8 @@ def node_errors(task, scene, p_sur, p_ref) -> tuple[dict, list, list]:
     return nodes, slots, labels
 
 
-def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duration: float | None = None) -> dict:
+def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duration: float | None = None,
+                  compile: bool = False) -> dict:
     import torch
 
     from .data.generate import scene_rollout
@@ -64,20 +82,20 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
 
     task = task_for_scene(scene_name)
     if task.custom:  # e.g. the magnetic rod (adds magnet orientation errors in degrees)
-        return task.hook("compare_scene")(task, scene_name, checkpoint, duration)
+        return task.hook("compare_scene")(task, scene_name, checkpoint, duration, compile)
     scene = task.scene_by_name(scene_name)
     if duration:
         from dataclasses import replace
         scene = replace(scene, duration=duration)
     engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
     p_ref, _, wall_ref = scene_rollout(task, scene)
-    p_sur, wall_sur = engine.run_scene(scene)
+    p_sur, wall_sur, facts = surrogate_rollout(engine, scene, compile)
     L = scene.rod.length
     t = torch.arange(p_ref.shape[0]) * task.delta
     nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
             "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur,
-            "speedup": wall_ref / wall_sur, "nodes": nodes, "checkpoint_metrics": engine.meta.get("metrics", {}),
+            "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "checkpoint_metrics": engine.meta.get("metrics", {}),
             "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}
 
 
@@ -122,12 +140,12 @@ def _plots(res: dict, out: Path) -> list[Path]:
     return paths
 
 
-def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = None) -> dict:
+def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = None, compile: bool = False) -> dict:
     import torch
 
     torch.set_num_threads(1)  # batch-1 stepping: one thread is fastest and timings are comparable
     t0 = time.perf_counter()
-    res = compare_scene(scene, checkpoint, duration)
+    res = compare_scene(scene, checkpoint, duration, compile)
     out = Path(out or f"out/compare_{res['scene']}")
     print(f"{res['scene']}: {res['duration_s']:.2f} s simulated, surrogate step {res['surrogate_step_s'] * 1e3:.0f} ms, "
           f"rod length {res['rod_length_m'] * 1e3:.0f} mm")
@@ -141,7 +159,8 @@ def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = N
         for magnet, e in per_magnet.items():
             print(f"  {who} {magnet} magnet orientation: " + "  ".join(
                 f"about {ax} max {e[ax]['max_deg']:.2f} deg, mean {e[ax]['mean_deg']:.2f} deg" for ax in "xyz"))
-    print(f"  wall time: LGVI {res['lgvi_wall_s']:.2f} s, surrogate {res['surrogate_wall_s']:.3f} s, "
+    compiled = f" (compiled; its compile {res['surrogate_compile_s']:.1f} s apart)" if res["surrogate_compiled"] else ""
+    print(f"  wall time: LGVI {res['lgvi_wall_s']:.2f} s, surrogate {res['surrogate_wall_s']:.3f} s{compiled}, "
           f"speed-up {res['speedup']:.0f}x" + (f"; static Cosserat {res['cosserat_wall_s']:.2f} s"
                                                if "cosserat_wall_s" in res else ""))
     paths = _plots(res, out)

@@ -821,6 +821,23 @@ def test_compare_command_runs_physics_and_surrogate(tmp_path):
     assert bad.returncode == 2 and "no_such_scene" in bad.stderr
 
 
+def test_compare_compiled_equals_eager_and_times_its_compile_apart(monkeypatch, tmp_path):
+    """``cmlearn compare --compile``: the compiled rollout is compared as the eager one is (the same errors to
+    float round-off), its compile time reported apart."""
+    from cmlearn import cli
+    from cmlearn.compare import compare_scene
+    seen = {}
+    monkeypatch.setattr("cmlearn.compare.run_compare", lambda *a, **kw: seen.update(args=a, kw=kw))
+    assert cli.main(["compare", "--scene", "semicircle", "--duration", "0.2", "--out", str(tmp_path), "--compile"]) == 0
+    assert seen == {"args": ("semicircle", None, 0.2, tmp_path), "kw": {"compile": True}}  # the flag reaches it
+    eager = compare_scene("semicircle", duration=0.2)
+    comp = compare_scene("semicircle", duration=0.2, compile=True)
+    assert not eager["surrogate_compiled"] and comp["surrogate_compiled"] and comp["surrogate_compile_s"] > 0
+    for label, node in eager["nodes"].items():
+        for ax in "xyz":
+            assert comp["nodes"][label]["errors"][ax]["max_mm"] == pytest.approx(node["errors"][ax]["max_mm"], abs=1e-3)
+
+
 def test_notebook_executes_on_a_short_case(monkeypatch):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")

@@ -344,12 +344,19 @@ class NodeLSTMSurrogate(nn.Module):
         return torch.cat([self.lstm.weight_ih_l0, self.lstm.weight_hh_l0], 1).t()
 
     def _select_features(self) -> None:
-        """The frozen matrices of the images in use, from every image's."""
+        """The frozen matrices of the images in use, from every image's: views where the images in use are
+        consecutive group elements (all of them, the first, the first two), so that a rollout entering and leaving
+        :meth:`use_symmetry` copies nothing (the dense matrix is megabytes)."""
         if self._feature_matrix_group is None:
             return
         g = self.img_elements
-        self._feature_matrix = self._feature_matrix_group[:, g].flatten(1)  # (D, G * K * W * 18), image-major
-        self._feature_rows, self._feature_blocks = self._feature_rows_group[g], self._feature_blocks_group[g]
+        lo, n = int(g[0]), g.numel()
+        if bool((g == torch.arange(lo, lo + n, device=g.device)).all()):
+            pick = lambda t, dim: t.narrow(dim, lo, n)  # noqa: E731
+        else:
+            pick = lambda t, dim: t.index_select(dim, g)  # noqa: E731
+        self._feature_matrix = pick(self._feature_matrix_group, 1).flatten(1)  # (D, G * K * W * 18), image-major
+        self._feature_rows, self._feature_blocks = pick(self._feature_rows_group, 0), pick(self._feature_blocks_group, 0)
 
     def unfreeze_features(self) -> None:
         self._feature_matrix = self._feature_rows = self._feature_blocks = None

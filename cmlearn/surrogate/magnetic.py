@@ -397,10 +397,10 @@ def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict
             "max_orientation_err_deg": float(err.abs().max())}
 
 
-def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None) -> dict:
+def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None, compile: bool = False) -> dict:
     """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there, plus the magnets'
-    orientation errors (deg) of the surrogate (closed loop) and of the static Cosserat model."""
-    from cmlearn.compare import find_checkpoint, node_errors
+    orientation errors (deg) of the surrogate (closed loop, compiled where asked) and of the static Cosserat model."""
+    from cmlearn.compare import find_checkpoint, node_errors, surrogate_rollout
 
     from .engine import Surrogate
     scene = task.scene_by_name(scene_name)
@@ -408,7 +408,7 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
         scene = replace(scene, duration=duration)
     engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
     p_ref, _, wall_ref = rollout(task, scene)
-    p_sur, wall_sur = engine.run_scene(scene)
+    p_sur, wall_sur, facts = surrogate_rollout(engine, scene, compile)
     p_ref = p_ref.float()
     rod, L = scene.rod, scene.rod.length
     t = torch.arange(p_ref.shape[0]) * task.delta
@@ -420,6 +420,6 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     orient["cosserat"] = orientation_stats(orientation_errors(R_cos, R_ref))
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
             "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur, "cosserat_wall_s": wall_cos,
-            "speedup": wall_ref / wall_sur, "nodes": nodes, "orientation_deg": orient,
+            "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "orientation_deg": orient,
             "checkpoint_metrics": engine.meta.get("metrics", {}),
             "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}
