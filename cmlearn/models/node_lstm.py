@@ -381,7 +381,9 @@ class NodeLSTMSurrogate(nn.Module):
         lstm = self.lstm
         sigmoid, tanh = (_program_sigmoid, _program_tanh) if program else (torch.sigmoid, torch.tanh)
         bias = lstm.bias_ih_l0 + lstm.bias_hh_l0
-        if program if stacked is None else stacked:
+        if stacked is None:
+            stacked = program
+        if stacked:
             both = self._stacked_lstm_weights() if self._lstm_stacked is None else self._lstm_stacked
             frames = f.unbind(1)
 
