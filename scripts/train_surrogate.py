@@ -79,6 +79,10 @@ class Args:
                                      "penalises a step that dissipates energy")
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
+    window_weighting: str = opt("uniform", "rollout-loss weights per training window (inverse_motion: 1 / (d^2 + "
+                                           "floor^2), d the window's RMS displacement from the reference shape)",
+                                ["uniform", "inverse_motion"])
+    motion_floor: float = opt(1e-3, "the floor of --window-weighting inverse_motion, metres")
     one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss")
     closed_loop: bool = opt(False, "training rollouts compute their own wrench (tasks whose custom module can; "
                                    "their validation rollout, val_rollout_mm, always does)")
@@ -266,7 +270,8 @@ def main(argv=None):
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight,
-                             wrench_fn=wrench_fn if a.closed_loop else None, noise_shape=a.noise_shape)
+                             wrench_fn=wrench_fn if a.closed_loop else None, noise_shape=a.noise_shape,
+                             window_weighting=a.window_weighting, motion_floor=a.motion_floor)
     loggers = [CSVLogger(a.log_dir, name=task.name)]
     try:
         from lightning.pytorch.loggers import TensorBoardLogger

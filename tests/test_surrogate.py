@@ -592,6 +592,31 @@ def test_inverse_square_step_weighting_divides_each_steps_error_by_its_step(tiny
         SurrogateModule(model, step_weighting="linear")
 
 
+def test_inverse_motion_window_weighting_weighs_each_window_by_its_motion(tiny):
+    from cmlearn.surrogate.training import SurrogateModule
+    dm, model, module = tiny_training(tiny, 1)
+    torch.manual_seed(1)
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    batch = next(iter(dm._loader("train", shuffle=False)))
+    hist, future, _, ref = batch[:4]
+    idx = model.idx_modeled
+    with torch.no_grad():
+        uniform, pred = module.rollout_loss(batch, 4)
+        weighted, _ = module.rollout_loss(batch, 4, window_weighting="inverse_motion")
+    e2 = ((pred[:, :, idx] - future[:, :4, idx]) / model.a_scale.mean()).pow(2).mean((1, 2, 3))  # per window
+    d2 = (torch.cat([hist, future[:, :4]], 1)[:, :, idx] - ref[:, None, idx]).pow(2).mean((1, 2, 3))
+    w = 1 / (d2 + 1e-6)
+    assert d2.max() > 4 * d2.min()  # windows of unlike motion, so the weights differ
+    assert torch.allclose(uniform, e2.mean(), rtol=1e-5)
+    assert torch.allclose(weighted, (e2 * w / w.mean()).mean(), rtol=1e-5)
+    assert not torch.allclose(weighted, uniform, rtol=1e-2)
+    with pytest.raises(ValueError, match="window_weighting"):
+        SurrogateModule(model, window_weighting="relative")
+    with pytest.raises(ValueError, match="motion_floor"):
+        SurrogateModule(model, window_weighting="inverse_motion", motion_floor=0.0)
+
+
 def test_one_step_loss_predicts_every_frame_from_the_true_history(tiny):
     from cmlearn.surrogate.training import SurrogateModule
     dm, model, module = tiny_training(tiny, 1)

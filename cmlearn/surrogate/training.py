@@ -105,17 +105,21 @@ class SurrogateModule(L.LightningModule):
     def __init__(self, model: NodeLSTMSurrogate, horizon: int = 32, warmup_epochs: int = 10, lr: float = 2e-3,
                  weight_decay: float = 0.0, max_epochs: int = 100, noise: float = 0.0,
                  step_weighting: str = "uniform", one_step_weight: float = 0.0, wrench_fn=None,
-                 noise_shape: str = "walk"):
+                 noise_shape: str = "walk", window_weighting: str = "uniform", motion_floor: float = 1e-3):
         super().__init__()
         if noise_shape not in ("walk", "offset"):
             raise ValueError(f"noise_shape must be 'walk' or 'offset', got {noise_shape!r}")
         if step_weighting not in ("uniform", "inverse_square"):
             raise ValueError(f"step_weighting must be 'uniform' or 'inverse_square', got {step_weighting!r}")
+        if window_weighting not in ("uniform", "inverse_motion"):
+            raise ValueError(f"window_weighting must be 'uniform' or 'inverse_motion', got {window_weighting!r}")
+        if not motion_floor > 0:
+            raise ValueError(f"motion_floor must be > 0 metres, got {motion_floor!r}")
         if not one_step_weight >= 0:
             raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
         self.model, self.wrench_fn = model, wrench_fn  # wrench_fn(frame, inputs_h) -> (B, K, 3): closed loop
         self.noise, self.step_weighting, self.one_step_weight = noise, step_weighting, one_step_weight
-        self.noise_shape = noise_shape
+        self.noise_shape, self.window_weighting, self.motion_floor = noise_shape, window_weighting, motion_floor
         self.horizon, self.warmup_epochs, self.lr = horizon, warmup_epochs, lr
         self.weight_decay, self.max_epochs = weight_decay, max_epochs
         self.save_hyperparameters(ignore=["model"])
@@ -125,11 +129,17 @@ class SurrogateModule(L.LightningModule):
         frac = min(1.0, (self.current_epoch + 1) / max(1, self.warmup_epochs))
         return max(1, int(round(frac * self.horizon)))
 
-    def rollout_loss(self, batch, horizon: int, weighting: str = "uniform", wrench_fn=None):
+    def rollout_loss(self, batch, horizon: int, weighting: str = "uniform", wrench_fn=None,
+                     window_weighting: str = "uniform"):
         """Mean squared rollout error over ``horizon`` steps. ``inverse_square`` divides the error at
         step h by h: a bias in the predicted second difference grows as h^2 along a rollout, so
         uniform weights let the last steps' drift dominate the loss and the fit of each single step
         (what the rollout is made of) hardly counts; divided by h, every step weighs about alike.
+        ``window_weighting="inverse_motion"`` weighs each window's squared error by 1 / (d^2 + floor^2), d the RMS
+        displacement of its modelled nodes from the reference shape over the window (``motion_floor`` metres),
+        the weights scaled to mean 1 over the batch: an absolute loss is ruled by the largest motions (its
+        weight grows as the load squared), so a small load's vibration, the printed Simulation III pulse's,
+        hardly counts; relative to its motion, every window weighs about alike.
         Closed loop (the module's ``wrench_fn``, or the ``wrench_fn`` given here, and a batch with inputs):
         each step's wrench from the last frame."""
         hist, future, wrench, ref = batch[:4]
@@ -143,6 +153,11 @@ class SurrogateModule(L.LightningModule):
         err = self.scaled_error(pred[:, :, idx], future[:, :horizon, idx])
         if weighting == "inverse_square":
             err = err / torch.arange(1, horizon + 1, dtype=err.dtype, device=err.device)[:, None, None]
+        if window_weighting == "inverse_motion":
+            frames = torch.cat([hist, future[:, :horizon]], 1)[:, :, idx]
+            d2 = (frames - ref[:, None, idx]).pow(2).mean((1, 2, 3))
+            w = 1.0 / (d2 + self.motion_floor ** 2)
+            return (err.pow(2).mean((1, 2, 3)) * (w / w.mean())).mean(), pred
         return err.pow(2).mean(), pred
 
     def scaled_error(self, pred, target):
@@ -178,7 +193,8 @@ class SurrogateModule(L.LightningModule):
         return (hist.index_add(2, idx, walk), *batch[1:])
 
     def training_step(self, batch, batch_idx):
-        loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon(), self.step_weighting)
+        loss, _ = self.rollout_loss(self.noisy(batch), self.current_horizon(), self.step_weighting,
+                                    window_weighting=self.window_weighting)
         if self.one_step_weight > 0:
             loss = loss + self.one_step_weight * self.one_step_loss(batch, self.current_horizon())
         # a rollout that ran away (on any process, under DDP): skip the batch rather than poison the weights
