@@ -556,6 +556,16 @@ def tiny_training(tiny, max_epochs):
     return dm, model, SurrogateModule(model, horizon=4, warmup_epochs=1, lr=5e-3, max_epochs=max_epochs)
 
 
+def erring_training(tiny, seed):
+    """:func:`tiny_training` (one epoch) with the head's last layer drawn at random (``seed``): a model that errs, so
+    its rollout error grows along the horizon."""
+    dm, model, module = tiny_training(tiny, 1)
+    torch.manual_seed(seed)
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    return dm, model, module
+
+
 def test_small_training_run_reduces_the_loss(tiny):
     L = pytest.importorskip("lightning")
     dm, model, module = tiny_training(tiny, 20)
@@ -575,10 +585,7 @@ def test_small_training_run_reduces_the_loss(tiny):
 
 def test_inverse_square_step_weighting_divides_each_steps_error_by_its_step(tiny):
     from cmlearn.surrogate.training import SurrogateModule
-    dm, model, module = tiny_training(tiny, 1)
-    torch.manual_seed(1)
-    for prm in model.head[-1].parameters():  # a model that errs, so the rollout error grows along the horizon
-        prm.data.normal_(0, 0.1)
+    dm, model, module = erring_training(tiny, 1)
     batch = next(iter(dm._loader("train", shuffle=False)))
     with torch.no_grad():
         uniform, pred = module.rollout_loss(batch, 4)
@@ -594,10 +601,7 @@ def test_inverse_square_step_weighting_divides_each_steps_error_by_its_step(tiny
 
 def test_inverse_motion_window_weighting_weighs_each_window_by_its_motion(tiny):
     from cmlearn.surrogate.training import SurrogateModule
-    dm, model, module = tiny_training(tiny, 1)
-    torch.manual_seed(1)
-    for prm in model.head[-1].parameters():
-        prm.data.normal_(0, 0.1)
+    dm, model, module = erring_training(tiny, 1)
     batch = next(iter(dm._loader("train", shuffle=False)))
     hist, future, _, ref = batch[:4]
     idx = model.idx_modeled
@@ -619,10 +623,7 @@ def test_inverse_motion_window_weighting_weighs_each_window_by_its_motion(tiny):
 
 def test_one_step_loss_predicts_every_frame_from_the_true_history(tiny):
     from cmlearn.surrogate.training import SurrogateModule
-    dm, model, module = tiny_training(tiny, 1)
-    torch.manual_seed(2)
-    for prm in model.head[-1].parameters():
-        prm.data.normal_(0, 0.1)
+    dm, model, module = erring_training(tiny, 2)
     hist, future, wrench, ref = batch = next(iter(dm._loader("train", shuffle=False)))
     idx, W = model.idx_modeled, hist.shape[1]
     frames = torch.cat([hist, future], 1)
@@ -669,10 +670,7 @@ def test_rollout_selection_scores_the_free_running_validation_trajectory(tiny):
     trajectory's first frame to its end, as the evaluation's free-running mode computes it; a runaway
     scores the cap."""
     from cmlearn.surrogate.training import RolloutSelection
-    dm, model, module = tiny_training(tiny, 1)
-    torch.manual_seed(3)
-    for prm in model.head[-1].parameters():
-        prm.data.normal_(0, 0.1)
+    dm, model, module = erring_training(tiny, 3)
     (v, a, b), = dm.ranges["val"]
     P, Wk = dm.positions[v, a:b + 1], dm.wrench[v, a:b]
     ref = free_running(model, P, Wk, 2)
