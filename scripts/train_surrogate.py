@@ -49,7 +49,8 @@ class Args:
     train_seed: int = opt(-1, "seeds the initial weights and the batch order (-1: --seed), for runs on the same data")
     eta: int = opt(2, "pose-history length each node's LSTM sees (the thesis's eta, >= 2)")
     hidden: int = opt(48, "LSTM hidden size per modelled node")
-    head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM")
+    head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM (with --init-from: "
+                            "at least the checkpoint's; a wider head's added units start without effect)")
     rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
                                    "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
                                    "no weights, so --init-from may add it")
@@ -186,11 +187,15 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
     except CheckpointError as e:
         raise SystemExit(f"--init-from: {e}") from None
     want = model_config(task, a)
-    # the chord projection, the rest anchor and the mirrors have no weights: a run may add or drop them
+    # the chord projection, the rest anchor and the mirrors have no weights: a run may add or drop them; a wider
+    # head is added as units that start without effect (NodeLSTMSurrogate.widen_head)
     if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
-               rest_shape=want.rest_shape, reflections=want.reflections) != want:
+               rest_shape=want.rest_shape, reflections=want.reflections,
+               head_hidden=max(init.config.head_hidden, want.head_hidden)) != want:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{want.to_dict()} (pass the same --eta, --hidden, --head-hidden)")
+                         f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden at least its own)")
+    if want.head_hidden > init.config.head_hidden:
+        init = init.widen_head(want.head_hidden)
     return init, meta
 
 

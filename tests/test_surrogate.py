@@ -566,6 +566,27 @@ def erring_training(tiny, seed):
     return dm, model, module
 
 
+def test_a_widened_head_steps_as_before_and_its_added_units_learn():
+    """net2net widening: the same steps (the shipped mirrored model, a loaded push); gradient on the weights out of
+    the added units of both layers (they are not dead: once those move, so do all the added weights); a narrower
+    head refused."""
+    model, _ = load_checkpoint(ROOT / "checkpoints" / "semicircle.pt")
+    torch.manual_seed(0)
+    wide = model.widen_head(96)
+    assert wide.config.head_hidden == 96 and not wide.training
+    assert torch.equal(wide.head[2].weight[:64, :64], model.head[2].weight)
+    task = get_task("semicircle")
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]  # frames near it
+    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
+    wrench = 0.02 * torch.randn(2, len(model.config.modeled), 3)
+    with torch.no_grad():
+        assert torch.equal(wide(hist, wrench, ref.expand(2, -1, -1)), model(hist, wrench, ref.expand(2, -1, -1)))
+    wide(hist, wrench, ref.expand(2, -1, -1)).square().sum().backward()
+    assert wide.head[4].weight.grad[:, 64:].abs().max() > 0 and wide.head[2].weight.grad[:64, 64:].abs().max() > 0
+    with pytest.raises(ValueError, match="head_hidden must be >= the current width 64"):
+        model.widen_head(32)
+
+
 def test_small_training_run_reduces_the_loss(tiny):
     L = pytest.importorskip("lightning")
     dm, model, module = tiny_training(tiny, 20)

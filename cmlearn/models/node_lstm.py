@@ -54,7 +54,7 @@ step. Anchors (clamped nodes) are known inputs. A free end has no right neighbou
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 from torch import Tensor, nn
@@ -362,6 +362,24 @@ class NodeLSTMSurrogate(nn.Module):
         self._feature_matrix = self._feature_rows = self._feature_blocks = None
         self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
         self._lstm_stacked = None
+
+    def widen_head(self, head_hidden: int) -> "NodeLSTMSurrogate":
+        """A copy whose dense head has ``head_hidden`` units per hidden layer (at least the current width) and
+        which steps exactly as this model does (net2net widening): the added units' incoming weights are drawn
+        as a new layer's are, their outgoing weights are zero, so they change no output until training moves
+        them. For fine-tuning a model with more capacity (``train_surrogate.py --init-from`` with a larger
+        ``--head-hidden``)."""
+        old = self.config.head_hidden
+        if head_hidden < old:
+            raise ValueError(f"head_hidden must be >= the current width {old}, got {head_hidden}")
+        wide = NodeLSTMSurrogate(replace(self.config, head_hidden=head_hidden)).to(self.length_scale.device)
+        state = wide.state_dict()
+        for name, value in self.state_dict().items():
+            if name.startswith("head.") and name.endswith(".weight") and name != "head.0.weight":
+                state[name][:, old:] = 0.0  # no output from the added units
+            state[name][tuple(slice(0, n) for n in value.shape)] = value
+        wide.load_state_dict(state)
+        return wide.train(self.training)
 
     def train(self, mode: bool = True):
         if mode:
