@@ -187,7 +187,21 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     assert all(torch.equal(src[k], cp[k]) for k in src)
     cp_arch = json.loads((tmp_path / "cp.json").read_text())["architecture"]
     assert cp_arch["chord_projection"] and cp_arch["reflections"] == []
-    for extra, msg in ((["--init-from", "ck.pt"], "--init-from: ck.pt has architecture"),
+    # a wider head starts from the same steps: at lr 0 the same errors, the old weights inside the new
+    run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
+                "--rest-anchor", "--mirror", "zx", "--head-hidden", "40", "--init-from", "ck.pt", "--lr", "0",
+                "--epochs", "1", "--out", "wide.pt", "--log-dir", "logs_wide"], tmp_path)
+    wide, wide_meta = torch.load(tmp_path / "wide.pt", weights_only=True)["state_dict"], \
+        json.loads((tmp_path / "wide.json").read_text())
+    assert wide_meta["architecture"]["head_hidden"] == 40 and wide["head.2.weight"].shape == (40, 40)
+    assert torch.equal(wide["head.2.weight"][:24, :24], src["head.2.weight"])
+    for case in rep["cases"]:
+        got, want = (m["metrics"][case]["free_running"]["node"] for m in (wide_meta, meta))
+        assert [got[ax]["max_mm"] for ax in "xyz"] == pytest.approx([want[ax]["max_mm"] for ax in "xyz"], rel=1e-4,
+                                                                   abs=1e-6)
+    script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", "--rest-anchor", "--mirror",
+                  "zx", "--head-hidden", "16", "--init-from", "ck.pt"], tmp_path, "a --head-hidden at least its own")
+    for extra, msg in ((["--init-from", "ck.pt", "--eta", "3"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
     for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
@@ -613,3 +627,35 @@ def test_bench_surrogate_program_quick(tmp_path):
     assert images == "1" and fig["axes"] == [2, 0] and res["gemm_templates"] is False
     assert min(fig["current_us"], fig["torch_us"], fig["current_wrapped_us"], fig["input_product_first_us"]) > 0
     assert len(fig["max_abs_vs_eager_m"]) == 4 and max(fig["max_abs_vs_eager_m"].values()) < 1e-7
+
+
+def test_training_fit_report_splits_windows_by_what_was_trained_on(tmp_path):
+    """Each group's figures are those of the windows' free-running rollouts: the largest of the training group
+    is the largest of the windows rolled out one by one; a task with its own evaluation is refused."""
+    from cmlearn.data import get_task, load_dataset
+    from cmlearn.data.windows import node_wrench
+    from cmlearn.surrogate import load_checkpoint
+    from cmlearn.surrogate.evaluate import free_running, interest_slots
+    ck = str(ROOT / "checkpoints" / "semicircle_fast.pt")
+    res = run_script([str(ROOT / "scripts/report_training_fit.py"), ck, "--variants", "3", "--duration", "0.3",
+                      "--starts", "3", "10", "--steps", "6", "--data-dir", str(tmp_path), "--out", "fit.md"],
+                     tmp_path)[ck]
+    # 31 frames, the cut at 18: variants 0 (to the cut) and 1 train, variant 2 validates
+    assert {k: v["windows"] for k, v in res.items()} == {"trained on": 4, "validation": 2, "printed, test part": 1}
+    task, (model, _) = get_task("semicircle"), load_checkpoint(ck)
+    data = load_dataset(next(tmp_path.glob("semicircle_v3_*.pt")))
+    slot = interest_slots(task, task.base_scene())[0]
+
+    def largest(v, s, steps):
+        p = data["positions"][v]
+        pred = free_running(model, p, node_wrench(data["wrench"][v], task.wrench_nodes, task.modeled), s)
+        return float((pred[:steps, slot].double() - p[s + 1:s + 1 + steps, slot].double()).abs().max()) * 1e3
+
+    train = [largest(v, s, 6) for v in (0, 1) for s in (3, 10)]
+    assert res["trained on"]["max_mm"] == pytest.approx(max(train), rel=1e-4)
+    assert res["trained on"]["mean_mm"] == pytest.approx(sum(train) / 4, rel=1e-4) and max(train) > 0.01
+    assert res["printed, test part"]["max_mm"] == pytest.approx(largest(0, 18, 12), rel=1e-4)
+    assert "| trained on | 4 |" in (tmp_path / "fit.md").read_text()
+    script_fails([str(ROOT / "scripts/report_training_fit.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt")],
+                 tmp_path, "has its own evaluation")
+    script_fails([str(ROOT / "scripts/report_training_fit.py"), ck, "--variants", "1"], tmp_path, "--variants")
