@@ -74,7 +74,7 @@ def main(argv=None) -> dict:
     if a.variants < 0 or a.variants == 1 or a.duration < 0:
         ap.error(f"--variants must be 0 or >= 2 and --duration >= 0, got {a.variants} and {a.duration}")
     torch.set_num_threads(a.threads)
-    rows, out = [], {}
+    rows, out, notes = [], {}, []
     for path in a.checkpoints:
         model, meta = load_checkpoint(path)
         task = get_task(meta["task"])
@@ -84,7 +84,8 @@ def main(argv=None) -> dict:
         n_variants = a.variants or meta["n_variants"]
         data = cached_dataset(task, n_variants, meta["data_seed"], a.data_dir, a.duration or args.get("duration") or None)
         if not (a.variants or a.duration) and data["meta"]["data_hash"] != meta["data_hash"]:
-            print(f"note: {path} was trained on data {meta['data_hash']}, these hash {data['meta']['data_hash']}")
+            notes.append(f"`{path}` was trained on data {meta['data_hash']}, these hash {data['meta']['data_hash']}.")
+            print("note:", notes[-1])
         split = split_ranges(n_variants, data["positions"].shape[1],
                              val_variants=0 if args.get("val_fresh") else 1, val_tail=args.get("val_tail", 0.0))
         slot = interest_slots(task, task.base_scene())[0]
@@ -110,7 +111,7 @@ def main(argv=None) -> dict:
     if a.out:
         write_text_atomic(a.out, f"Node of interest, largest free-running error on any axis over a window of "
                                  f"{a.steps} steps (the printed test part: to the end), mm; starts {a.starts}.\n\n"
-                                 + table + "\n")
+                                 + table + "\n" + "".join(f"\n{n}" for n in notes) + ("\n" if notes else ""))
     print(json.dumps(out))
     return out
 
