@@ -5,14 +5,14 @@ does a model fit its training data and fail to generalise, or not fit it at all?
         [--starts 40 120] [--steps 80] [--out docs/training_fit.md] [--variants N --duration S]
 
 Each checkpoint is run on its own dataset (read from ``--data-dir`` or made by the LGVI as a training run makes
-it; a hash other than the checkpoint's is noted; ``--variants`` and ``--duration`` make a smaller one instead). Every trajectory is cut into free-running windows of ``--steps`` steps
-from the true history ending at each of the ``--starts`` frames, where such a window lies inside the part of the
-trajectory the run trained on (the training split of :func:`cmlearn.data.windows.split_ranges`) or inside a
-validation trajectory; the printed scene's test part (its last 40 %, from the cut) is the third group, as in the
-README's tables. For each group the node of interest's largest error on any axis (max over the window) is
-summarised over its windows (median, mean, largest), with the mean of the node's swing in those windows (its
-largest distance from its mean position) for scale. Position tasks only. Prints a markdown table and ends with
-one JSON line.
+it; a hash other than the checkpoint's is noted; ``--variants`` and ``--duration`` make a smaller one instead).
+Every trajectory is cut into free-running windows of ``--steps`` steps from the true history ending at each of
+the ``--starts`` frames, where such a window lies inside the part of the trajectory the run trained on (the
+training split of :func:`cmlearn.data.windows.split_ranges`) or inside a validation trajectory; the printed
+scene's test part (its last 40 %, from the cut) is the third group, as in the README's tables. For each group
+the node of interest's largest error on any axis (max over the window) is summarised over its windows (median,
+mean, largest), with the mean of the node's swing in those windows (its largest distance from its mean
+position) for scale. Position tasks only. Prints a markdown table and ends with one JSON line.
 """
 from __future__ import annotations
 
@@ -82,7 +82,8 @@ def main(argv=None) -> dict:
             ap.error(f"checkpoints: {path} is of task {task.name!r}, which has its own evaluation")
         args = meta.get("args", {})
         n_variants = a.variants or meta["n_variants"]
-        data = cached_dataset(task, n_variants, meta["data_seed"], a.data_dir, a.duration or args.get("duration") or None)
+        duration = a.duration or args.get("duration") or None
+        data = cached_dataset(task, n_variants, meta["data_seed"], a.data_dir, duration)
         if not (a.variants or a.duration) and data["meta"]["data_hash"] != meta["data_hash"]:
             notes.append(f"`{path}` was trained on data {meta['data_hash']}, these hash {data['meta']['data_hash']}.")
             print("note:", notes[-1])
