@@ -92,14 +92,14 @@ def main(argv=None) -> dict:
         slot = interest_slots(task, task.base_scene())[0]
         eta = model.config.eta
         (_, cut, last), = split["test"]
-        groups = {"trained on": windows(split["train"], a.starts, a.steps, eta),
-                  "validation": [] if args.get("val_fresh") else windows(split["val"], a.starts, a.steps, eta),
-                  "printed, test part": [(0, cut)]}
+        groups = {"trained on": (windows(split["train"], a.starts, a.steps, eta), a.steps),
+                  "validation": ([] if args.get("val_fresh") else windows(split["val"], a.starts, a.steps, eta),
+                                 a.steps),
+                  "printed, test part": ([(0, cut)], last - cut)}
         res = {}
-        for name, wins in groups.items():
+        for name, (wins, steps) in groups.items():
             if not wins:
                 continue
-            steps = last - cut if name == "printed, test part" else a.steps
             res[name] = summary(*window_errors(model, data, wins, steps, slot))
             r = res[name]
             rows.append(f"| `{path}` | {name} | {r['windows']} | {r['median_mm']:.2f} | {r['mean_mm']:.2f} | "
