@@ -51,6 +51,9 @@ class Args:
     hidden: int = opt(48, "LSTM hidden size per modelled node")
     head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM (with --init-from: "
                             "at least the checkpoint's; a wider head's added units start without effect)")
+    stencil: int = opt(1, "rings of neighbours each node sees: 1 (left, right) or 2 (also their outer neighbours: a "
+                          "five-node stencil, as bending needs); with --init-from at least the checkpoint's, the "
+                          "second ring's weights starting at zero", (1, 2))
     rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
                                    "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
                                    "no weights, so --init-from may add it")
@@ -171,7 +174,7 @@ def parse(argv=None) -> Args:
 
 def model_config(task, a: Args):
     return task.model_config(eta=a.eta, hidden=a.hidden, head_hidden=a.head_hidden, rest_anchor=a.rest_anchor,
-                             chord_projection=a.chord_projection, mirror=a.mirror)
+                             chord_projection=a.chord_projection, mirror=a.mirror, stencil=a.stencil)
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
@@ -188,15 +191,16 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         raise SystemExit(f"--init-from: {e}") from None
     want = model_config(task, a)
     # the chord projection, the rest anchor and the mirrors have no weights: a run may add or drop them; a wider
-    # head is added as units that start without effect (NodeLSTMSurrogate.widen_head)
+    # head or stencil is added as weights that start without effect (NodeLSTMSurrogate.widen)
     if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
                rest_shape=want.rest_shape, reflections=want.reflections,
-               head_hidden=max(init.config.head_hidden, want.head_hidden)) != want:
+               head_hidden=max(init.config.head_hidden, want.head_hidden)
+               ).with_stencil(max(init.config.stencil, want.stencil)) != want:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden at least its own)")
-    if want.head_hidden > init.config.head_hidden:
-        init = init.widen_head(want.head_hidden)
-    return init, meta
+                         f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden and --stencil at "
+                         "least its own)")
+    meta = dict(meta, stencil=init.config.stencil)  # the offset scales of a ring added here come from the data
+    return init.widen(want.head_hidden, want.stencil), meta
 
 
 SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_scale")
@@ -206,17 +210,22 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
     schedule. The scales must fit this run's data: the same data hash, or (regenerated data can differ in
     its last bits, for example on another machine) the scales this data gives within 1e-5, over the variants
-    the checkpoint's own run trained on (with or without --val-fresh, with its --val-tail). Returns the
+    the checkpoint's own run trained on (with or without --val-fresh, with its --val-tail). A ring of neighbours
+    added by ``--stencil`` takes its offset scales from those variants. Returns the
     provenance the new checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
+    run = meta.get("args", {})
+    trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
+    fresh = NodeLSTMSurrogate(model.config)  # the scales this run's data gives
+    fresh.set_scales(trained, dm.wrench, float(init.length_scale))
+    ring = 6 * meta["stencil"]  # the offset scales the checkpoint holds; those of a ring added by --stencil are new
     if meta.get("data_hash") != data["meta"]["data_hash"]:
-        run = meta.get("args", {})
-        trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
-        model.set_scales(trained, dm.wrench, float(init.length_scale))
-        off = max(float(((getattr(model, k) - getattr(init, k)).abs() / getattr(init, k).abs()).max()) for k in SCALES)
+        held = lambda m, k: getattr(m, k)[:, :ring] if k == "rel_scale" else getattr(m, k)  # noqa: E731
+        off = max(float(((held(fresh, k) - held(init, k)).abs() / held(init, k).abs()).max()) for k in SCALES)
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                              f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative)")
     model.load_state_dict(init.state_dict())
+    model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
     return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
             "data_hash": meta.get("data_hash")}
 

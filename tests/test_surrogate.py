@@ -6,6 +6,7 @@ import math
 import subprocess
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -566,15 +567,16 @@ def erring_training(tiny, seed):
     return dm, model, module
 
 
-def test_a_widened_head_steps_as_before_and_its_added_units_learn():
+def test_a_widened_head_or_stencil_steps_as_before_and_what_it_adds_learns():
     """net2net widening: the same steps (the shipped mirrored model, a loaded push); gradient on the weights out of
-    the added units of both layers (they are not dead: once those move, so do all the added weights); a narrower
-    head refused."""
+    the added units of both head layers (they are not dead: once those move, so do all the added weights) and on
+    the LSTM's weights from the second ring of neighbours; a narrower head or stencil refused."""
     model, _ = load_checkpoint(ROOT / "checkpoints" / "semicircle.pt")
     torch.manual_seed(0)
-    wide = model.widen_head(96)
-    assert wide.config.head_hidden == 96 and not wide.training
+    wide = model.widen(head_hidden=96, stencil=2)
+    assert wide.config.head_hidden == 96 and wide.config.stencil == 2 and not wide.training
     assert torch.equal(wide.head[2].weight[:64, :64], model.head[2].weight)
+    assert torch.equal(wide.lstm.weight_ih_l0[:, :18], model.lstm.weight_ih_l0)
     task = get_task("semicircle")
     ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]  # frames near it
     hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
@@ -583,8 +585,46 @@ def test_a_widened_head_steps_as_before_and_its_added_units_learn():
         assert torch.equal(wide(hist, wrench, ref.expand(2, -1, -1)), model(hist, wrench, ref.expand(2, -1, -1)))
     wide(hist, wrench, ref.expand(2, -1, -1)).square().sum().backward()
     assert wide.head[4].weight.grad[:, 64:].abs().max() > 0 and wide.head[2].weight.grad[:64, 64:].abs().max() > 0
+    assert wide.lstm.weight_ih_l0.grad[:, 18:24].abs().amax(0).min() > 0  # every second-ring offset change
     with pytest.raises(ValueError, match="head_hidden must be >= the current width 64"):
-        model.widen_head(32)
+        model.widen(head_hidden=32)
+    with pytest.raises(ValueError, match="stencil must be >= the current stencil 2"):
+        wide.widen(stencil=1)
+
+
+def test_a_five_node_stencil_sees_the_second_neighbours_and_freezes_as_it_runs():
+    """``stencil=2``: each node's second ring is the next tracked node beyond its first (the anchors and a free end
+    clamp it); its offsets are features 18-29, and only they change when a second neighbour alone moves; the frozen
+    and program forms equal the eager step with both mirrors; a bad stencil is an error naming it."""
+    task = get_task("semicircle")
+    cfg = task.model_config(stencil=2, mirror="zx", hidden=8, head_hidden=8)
+    assert cfg.left2 == (0, 0) + tuple(range(1, 20)) and cfg.right2 == tuple(range(3, 22)) + (22, 22)
+    free = NodeLSTMConfig.chain((0, 1, 2, 3), (1, 2, 3), stencil=2)  # node 3 is a free end
+    assert free.left2 == (0, 0, 1) and free.right2 == (3, 3, 3)  # none beyond the free end: itself
+    with pytest.raises(ValueError, match="stencil must be 1 or 2"):
+        NodeLSTMConfig.chain((0, 1, 2), (1, 2), stencil=3)
+    with pytest.raises(ValueError, match="left2 and right2"):
+        replace(free, right2=())
+    torch.manual_seed(0)
+    model = NodeLSTMSurrogate(cfg)
+    model.rel_scale.uniform_(1e-3, 2e-3)
+    model.disp_scale.fill_(1e-2)
+    model.v_scale.fill_(1e-3)
+    model.a_scale.fill_(1e-4)
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
+    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
+    k = 5  # modelled node 5 (tracked 6): its second neighbours are tracked 4 and 8
+    moved = hist.clone()
+    moved[:, :, 8] += 1e-3
+    df = (model.features(moved, ref.expand(2, -1, -1)) - model.features(hist, ref.expand(2, -1, -1)))[:, k]
+    changed = (df.abs() > 0).any(0).any(0).nonzero().flatten().tolist()
+    assert changed == [21, 22, 23]  # right2's offset change (18-20 left2, 21-23 right2)
+    wrench = 0.02 * torch.randn(2, 21, 3)
+    with torch.no_grad():
+        eager = model.eval()(hist, wrench, ref.expand(2, -1, -1))
+        model.freeze_features()
+        assert (model(hist, wrench, ref.expand(2, -1, -1)) - eager).abs().max() < 1e-7
+        assert (model(hist, wrench, ref.expand(2, -1, -1), program=True) - eager).abs().max() < 1e-7
 
 
 def test_small_training_run_reduces_the_loss(tiny):

@@ -156,23 +156,25 @@ class SurrogateTask:
         reverse = tuple(reversed(range(len(self.tracked))))
         return tuple(("xyz".index(a), reverse if self.mirrors[a] == "reversed" else None) for a in mirror)
 
-    def model_config(self, mirror: str = "", **kw):
+    def model_config(self, mirror: str = "", stencil: int = 1, **kw):
         """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides, made
-        equivariant under the reflections ``mirror`` (axis letters of ``mirrors``, e.g. ``"zx"``) where given."""
+        equivariant under the reflections ``mirror`` (axis letters of ``mirrors``, e.g. ``"zx"``) where given,
+        with ``stencil`` rings of neighbours (``NodeLSTMConfig.with_stencil``: the second beyond the overridden
+        first)."""
         from cmlearn.models import NodeLSTMConfig
         if kw.get("rest_anchor") and self.equilibrium is not None and "rest_shape" not in kw:
             rest = self.equilibrium(self.base_scene())[list(self.tracked)]
             kw["rest_shape"] = tuple(tuple(float(x) for x in r) for r in rest.float())
         cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, reflections=self.reflections(mirror), **kw)
         if not self.links:
-            return cfg
+            return cfg.with_stencil(stencil)
         pos = {n: i for i, n in enumerate(self.tracked)}
         left, right = list(cfg.left), list(cfg.right)
         for j, m in enumerate(self.modeled):
             if m in self.links:
                 left[j], right[j] = (pos[x] for x in self.links[m])
         from dataclasses import replace
-        return replace(cfg, left=tuple(left), right=tuple(right))
+        return replace(cfg, left=tuple(left), right=tuple(right)).with_stencil(stencil)
 
     def record_every(self, scene: Scene) -> int:
         k = self.delta / scene.dt

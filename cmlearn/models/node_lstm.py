@@ -8,7 +8,10 @@ under the large constant coordinates:
 
 * Input I, per frame (18 features): the node's displacement ``(p_k - p_k^ref) / D_k``, the changes
   of its neighbour offsets ``((p_j - p_k) - (p_j - p_k)^ref) / d_k`` (j = left, right), its step
-  ``(p_k(tau) - p_k(tau - 1)) / v_k`` and the reference offsets ``(p_j - p_k)^ref / L``; through an LSTM;
+  ``(p_k(tau) - p_k(tau - 1)) / v_k`` and the reference offsets ``(p_j - p_k)^ref / L``; with
+  ``stencil=2`` (30 features) the same two offset terms for the second neighbours too (``left2``,
+  ``right2``: a five-node stencil, as the bending of a rod tracked by positions needs), appended; through
+  an LSTM;
 * Input II: the node force ``/ f_scale`` through two dense layers;
 * the LSTM's last output, the force features and a learned node embedding are concatenated and a
   dense head outputs the node's normalised second difference ``a_k``; the next position is
@@ -61,7 +64,11 @@ from torch import Tensor, nn
 
 __all__ = ["NodeLSTMConfig", "NodeLSTMSurrogate"]
 
-N_FEATURES = 18
+
+def n_features(stencil: int) -> int:
+    """Input Layer I's width per frame: the displacement and the step (6), and the changes of the offsets and the
+    reference offsets of each ring of neighbours (12 a ring)."""
+    return 6 + 12 * stencil
 
 
 @dataclass(frozen=True)
@@ -82,11 +89,20 @@ class NodeLSTMConfig:
     # generators of the mirror symmetries: (world axis negated, tracked index of each tracked node's mirror
     # image or None for itself), one per axis
     reflections: tuple[tuple[int, tuple[int, ...] | None], ...] = ()
+    left2: tuple[int, ...] = ()    # with a five-node stencil: the left neighbour's left neighbour (() otherwise)
+    right2: tuple[int, ...] = ()   # ... the right neighbour's right neighbour (the node itself beyond a free end)
+
+    @property
+    def stencil(self) -> int:
+        """Rings of neighbours each modelled node sees: 1 (left, right) or 2 (also left2, right2)."""
+        return 2 if self.left2 else 1
 
     def __post_init__(self):
         K = len(self.modeled)
         if K == 0 or len(self.left) != K or len(self.right) != K:
             raise ValueError("modeled, left and right must be non-empty and of equal length")
+        if (len(self.left2), len(self.right2)) not in ((0, 0), (K, K)):
+            raise ValueError("left2 and right2 (the second neighbours) must both be empty or both as long as modeled")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
         for name in ("hidden", "wrench_hidden", "embedding", "head_hidden"):
@@ -108,19 +124,34 @@ class NodeLSTMConfig:
                                             or any(len(r) != 3 for r in self.rest_shape)):
             raise ValueError(f"rest_shape must be n_tracked = {self.n_tracked} rows of 3 coordinates, given with "
                              "rest_anchor")
-        for name in ("modeled", "left", "right"):
+        for name in ("modeled", "left", "right", "left2", "right2"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
 
     @staticmethod
-    def chain(tracked: tuple[int, ...], modeled: tuple[int, ...], **kw) -> "NodeLSTMConfig":
+    def chain(tracked: tuple[int, ...], modeled: tuple[int, ...], stencil: int = 1, **kw) -> "NodeLSTMConfig":
         """Neighbours along the tracked chain (rod node indices); the last tracked node, if modelled, is a
-        free end."""
+        free end. ``stencil``: :meth:`with_stencil`."""
         pos = {n: i for i, n in enumerate(tracked)}
         idx = [pos[m] for m in modeled]
         left = [max(i - 1, 0) for i in idx]
         right = [min(i + 1, len(tracked) - 1) for i in idx]
-        return NodeLSTMConfig(n_tracked=len(tracked), modeled=tuple(idx), left=tuple(left), right=tuple(right), **kw)
+        cfg = NodeLSTMConfig(n_tracked=len(tracked), modeled=tuple(idx), left=tuple(left), right=tuple(right), **kw)
+        return cfg.with_stencil(stencil)
+
+    def with_stencil(self, stencil: int) -> "NodeLSTMConfig":
+        """This config with one ring of neighbours (``stencil=1``) or two (``2``): the second neighbours are the
+        next tracked nodes beyond the (possibly overridden) first ones, clamped at the chain's ends, none beyond a
+        free end. A rod tracked by positions alone bends by the curvature at its neighbours, which depends on
+        theirs: a five-node stencil."""
+        if stencil not in (1, 2):
+            raise ValueError(f"stencil must be 1 or 2, got {stencil!r}")
+        if stencil == 1:
+            return replace(self, left2=(), right2=())
+        last = self.n_tracked - 1
+        left2 = tuple(max(i - 1, 0) for i in self.left)
+        right2 = tuple(m if r == m else min(r + 1, last) for r, m in zip(self.right, self.modeled))
+        return replace(self, left2=left2, right2=right2)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -165,15 +196,18 @@ class NodeLSTMSurrogate(nn.Module):
         super().__init__()
         self.config = c = config
         K = len(c.modeled)
-        self.lstm = nn.LSTM(N_FEATURES, c.hidden, batch_first=True)
+        self.n_features = n_features(c.stencil)
+        self.lstm = nn.LSTM(self.n_features, c.hidden, batch_first=True)
         self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
         self.embed = nn.Embedding(K, c.embedding)
         self.head = nn.Sequential(nn.Linear(c.hidden + c.wrench_hidden + c.embedding, c.head_hidden), nn.Tanh(),
                                   nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
-        for name, idx in (("idx_modeled", c.modeled), ("idx_left", c.left), ("idx_right", c.right)):
-            self.register_buffer(name, torch.tensor(idx, dtype=torch.long), persistent=False)
+        rings = (("left", c.left), ("right", c.right)) + ((("left2", c.left2), ("right2", c.right2)) if c.left2 else ())
+        for name, idx in (("modeled", c.modeled),) + rings:
+            self.register_buffer(f"idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
+        self._rings = [name for name, _ in rings]
         movable = torch.zeros(c.n_tracked)
         movable[list(c.modeled)] = 1.0
         self.register_buffer("movable", movable, persistent=False)  # (n_tracked,): 1 modelled, 0 anchor
@@ -183,7 +217,7 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("has_right", 1.0 - free_end[:, None], persistent=False)
         self.register_buffer("length_scale", torch.ones(()))
         self.register_buffer("disp_scale", torch.ones(K, 3))
-        self.register_buffer("rel_scale", torch.ones(K, 6))
+        self.register_buffer("rel_scale", torch.ones(K, 6 * c.stencil))
         self.register_buffer("v_scale", torch.ones(K, 3))
         self.register_buffer("a_scale", torch.ones(K, 3))
         self.register_buffer("f_scale", torch.ones(()))
@@ -203,7 +237,7 @@ class NodeLSTMSurrogate(nn.Module):
         for name in ("_feature_matrix", "_feature_rows", "_feature_blocks"):  # freeze_features; buffers, so that
             for part in ("", "_group"):                                        # .to(device) moves them too
                 self.register_buffer(name + part, None, persistent=False)     # (images in use; every image)
-        self.register_buffer("_lstm_stacked", None, persistent=False)  # freeze_features: (18 + hidden, 4 hidden)
+        self.register_buffer("_lstm_stacked", None, persistent=False)  # freeze_features: (F + hidden, 4 hidden)
         self.use_symmetry(())  # the images in use (all of G) and the stabiliser projected on (none)
 
     def invariant_axes(self, frames: Tensor, wrench: Tensor, rtol: float = 1e-6) -> tuple[int, ...]:
@@ -283,41 +317,44 @@ class NodeLSTMSurrogate(nn.Module):
         self.f_scale.fill_(float(wrench.abs().max()) if wrench.numel() and wrench.abs().max() > 0 else 1.0)
 
     def _offsets(self, p: Tensor) -> Tensor:
-        """Neighbour offsets (..., K, 6) of positions (..., n_tracked, 3); zero beyond a free end."""
+        """Neighbour offsets (..., K, 6 * stencil) of positions (..., n_tracked, 3), ring by ring (left, right,
+        then left2, right2); zero beyond a free end."""
         pk = p[..., self.idx_modeled, :]
-        return torch.cat([p[..., self.idx_left, :] - pk, (p[..., self.idx_right, :] - pk) * self.has_right], -1)
+        off = [p[..., self.idx_left, :] - pk, (p[..., self.idx_right, :] - pk) * self.has_right]
+        return torch.cat(off + [p[..., getattr(self, f"idx_{r}"), :] - pk for r in self._rings[2:]], -1)
 
     def features(self, hist: Tensor, ref: Tensor) -> Tensor:
-        """(B, W, n_tracked, 3) history and (B, n_tracked, 3) reference -> (B, K, W, 18) Input Layer I."""
+        """(B, W, n_tracked, 3) history and (B, n_tracked, 3) reference -> (B, K, W, F) Input Layer I: the
+        first ring's 18 features, then the second ring's 12 where the stencil has one."""
         pk = hist[:, :, self.idx_modeled]
         rel0 = self._offsets(ref)[:, None]
         disp = (pk - ref[:, None, self.idx_modeled]) / self.disp_scale
         drel = (self._offsets(hist) - rel0) / self.rel_scale
         step = torch.cat([torch.zeros_like(pk[:, :1]), pk[:, 1:] - pk[:, :-1]], 1) / self.v_scale
         geo = (rel0 / self.length_scale).expand(-1, hist.shape[1], -1, -1)
-        return torch.cat([disp, drel, step, geo], -1).transpose(1, 2)
+        return torch.cat([disp, drel[..., :6], step, geo[..., :6], drel[..., 6:], geo[..., 6:]], -1).transpose(1, 2)
 
     @torch.no_grad()
     def freeze_features(self) -> "NodeLSTMSurrogate":
         """Inference speed-up. Input Layer I is linear in (history, reference): precompute it as one
         matrix (built by applying :meth:`features` to the unit basis) and, for compiled programs
         (``forward(..., program=True)``), per node, since node ``k``'s features depend only on its own
-        and its two neighbours' positions: the matrix from those ``(eta + 2) * 9`` numbers to its
-        ``(eta + 1) * 18`` features (eagerly one matrix product is faster, compiled the blocks).
+        and its neighbours' positions: the matrix from those ``(eta + 2) * 3 * (1 + 2 stencil)`` numbers to its
+        ``(eta + 1) * F`` features (eagerly one matrix product is faster, compiled the blocks).
         Every mirror image's matrices are kept; those of the images in use (:meth:`use_symmetry`) are
         taken from them. The LSTM's stacked weights (:meth:`_lstm_last`) are kept too, so that a compiled
         program holds them as one constant (a product with weights computed in the program has no C++ GEMM
         template). Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``)
         returns to the explicit computation."""
-        W, N, K = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel()
+        W, N, K, F = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel(), self.n_features
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
-        dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * N_FEATURES)
-        nodes = torch.stack([self.idx_left, self.idx_modeled, self.idx_right], -1)  # (K, 3)
+        dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * F)
+        nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 3 or 5)
         frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
-        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3, 3)
+        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3 or 5, 3)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
-        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * N_FEATURES))
+        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * F))
         first = torch.ones_like(rows, dtype=torch.bool)  # a neighbour that is the node itself (free end) counts once
         for i in range(1, rows.shape[1]):
             first[:, i] = (rows[:, :i] != rows[:, i:i + 1]).all(1)
@@ -331,15 +368,15 @@ class NodeLSTMSurrogate(nn.Module):
         flip = (((frame[None, :, :, 0] + self.mirror_perm[:, None]) * 3)[..., None]
                 + torch.arange(3, device=nodes.device)).flatten(1)  # (G, D)
         dense = dense.reshape(D, -1)
-        self._feature_matrix_group = torch.stack([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G, K * W * 18)
-        self._feature_rows_group = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 9)
-        self._feature_blocks_group = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 9, W * 18)
+        self._feature_matrix_group = torch.stack([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G, K * W * F)
+        self._feature_rows_group = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 3 * nodes)
+        self._feature_blocks_group = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 3 * nodes, W * F)
         self._lstm_stacked = self._stacked_lstm_weights().contiguous()  # a constant of the program, not an op in it
         self._select_features()
         return self
 
     def _stacked_lstm_weights(self) -> Tensor:
-        """The LSTM's input and recurrent weights stacked, (18 + hidden, 4 hidden): the right factor of
+        """The LSTM's input and recurrent weights stacked, (F + hidden, 4 hidden): the right factor of
         ``[features, last output] @ W`` (:meth:`_lstm_last`)."""
         return torch.cat([self.lstm.weight_ih_l0, self.lstm.weight_hh_l0], 1).t()
 
@@ -355,7 +392,7 @@ class NodeLSTMSurrogate(nn.Module):
             pick = lambda t, dim: t.narrow(dim, lo, n)  # noqa: E731
         else:
             pick = lambda t, dim: t.index_select(dim, g)  # noqa: E731
-        self._feature_matrix = pick(self._feature_matrix_group, 1).flatten(1)  # (D, G * K * W * 18), image-major
+        self._feature_matrix = pick(self._feature_matrix_group, 1).flatten(1)  # (D, G * K * W * F), image-major
         self._feature_rows, self._feature_blocks = pick(self._feature_rows_group, 0), pick(self._feature_blocks_group, 0)
 
     def unfreeze_features(self) -> None:
@@ -363,20 +400,27 @@ class NodeLSTMSurrogate(nn.Module):
         self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
         self._lstm_stacked = None
 
-    def widen_head(self, head_hidden: int) -> "NodeLSTMSurrogate":
-        """A copy whose dense head has ``head_hidden`` units per hidden layer (at least the current width) and
-        which steps exactly as this model does (net2net widening): the added units' incoming weights are drawn
-        as a new layer's are, their outgoing weights are zero, so they change no output until training moves
-        them. For fine-tuning a model with more capacity (``train_surrogate.py --init-from`` with a larger
-        ``--head-hidden``)."""
-        old = self.config.head_hidden
-        if head_hidden < old:
-            raise ValueError(f"head_hidden must be >= the current width {old}, got {head_hidden}")
-        wide = NodeLSTMSurrogate(replace(self.config, head_hidden=head_hidden)).to(self.length_scale.device)
+    def widen(self, head_hidden: int | None = None, stencil: int | None = None) -> "NodeLSTMSurrogate":
+        """A copy with a wider dense head (``head_hidden`` units per hidden layer, at least the current width)
+        and/or a wider stencil (``stencil``, at least the current one) that steps exactly as this model does
+        (net2net widening). The head's added units' incoming weights are drawn as a new layer's are, their
+        outgoing weights are zero; the LSTM's weights on the second ring's features are zero. So nothing added
+        changes an output until training moves it. For fine-tuning a model with more capacity
+        (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). The second ring's
+        offset scales (``rel_scale[:, 6:]``) are placeholders: set them from the data before training."""
+        c = self.config
+        head_hidden = c.head_hidden if head_hidden is None else head_hidden
+        stencil = c.stencil if stencil is None else stencil
+        if head_hidden < c.head_hidden:
+            raise ValueError(f"head_hidden must be >= the current width {c.head_hidden}, got {head_hidden}")
+        if stencil < c.stencil:
+            raise ValueError(f"stencil must be >= the current stencil {c.stencil}, got {stencil}")
+        wide = NodeLSTMSurrogate(replace(c, head_hidden=head_hidden).with_stencil(stencil)).to(self.length_scale.device)
         state = wide.state_dict()
+        state["lstm.weight_ih_l0"][:, self.n_features:] = 0.0  # no input from the added ring
         for name, value in self.state_dict().items():
             if name.startswith("head.") and name.endswith(".weight") and name != "head.0.weight":
-                state[name][:, old:] = 0.0  # no output from the added units
+                state[name][:, c.head_hidden:] = 0.0  # no output from the added units
             state[name][tuple(slice(0, n) for n in value.shape)] = value
         wide.load_state_dict(state)
         return wide.train(self.training)
@@ -389,7 +433,7 @@ class NodeLSTMSurrogate(nn.Module):
         return super().train(mode)
 
     def _lstm_last(self, f: Tensor, program: bool = False, stacked: bool | None = None) -> Tensor:
-        """The LSTM's last output for (S, W, 18) from the zero state, as its gate equations (the first
+        """The LSTM's last output for (S, W, F) from the zero state, as its gate equations (the first
         recurrent product vanishes): for compiled programs, where it beats the decomposed ``nn.LSTM``, and
         training (the frames unbound, not indexed: the backward stacks instead of filling zeros per frame).
         ``program``: with the activations of :func:`_program_sigmoid` and :func:`_program_tanh`. ``stacked`` (by
@@ -422,7 +466,7 @@ class NodeLSTMSurrogate(nn.Module):
         return h
 
     def _input_features(self, hist: Tensor, ref: Tensor, program: bool) -> Tensor:
-        """Input Layer I of every symmetry image ``g`` in use of the inputs, as (G * B * K, W, 18) LSTM
+        """Input Layer I of every symmetry image ``g`` in use of the inputs, as (G * B * K, W, F) LSTM
         sequences (image-major; frozen, the reflections are folded into the feature matrices)."""
         B, W = hist.shape[:2]
         G, K = self.img_sign.shape[0], self.idx_modeled.numel()
@@ -431,13 +475,13 @@ class NodeLSTMSurrogate(nn.Module):
             if G > 1:
                 hist = (hist[:, :, self.img_perm] * self.img_sign[:, None]).movedim(2, 0).flatten(0, 1)
                 ref = self._mirror_images(ref)
-            return self.features(hist, ref).reshape(G * B * K, W, N_FEATURES)
+            return self.features(hist, ref).reshape(G * B * K, W, self.n_features)
         x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
         if program:
             f = torch.einsum("bgki,gkio->gbko", x[:, self._feature_rows], self._feature_blocks)
         else:
             f = (x @ M).reshape(B, G, -1).transpose(0, 1)
-        return f.reshape(G * B * K, W, N_FEATURES)
+        return f.reshape(G * B * K, W, self.n_features)
 
     def _mirror_images(self, x: Tensor) -> Tensor:
         """Every symmetry image in use ``g x`` of frames (B, n_tracked, 3), as (G * B, n_tracked, 3),
@@ -455,7 +499,7 @@ class NodeLSTMSurrogate(nn.Module):
         return self._mean_back(a, hist.shape[0])
 
     def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
-        """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, 18) and forces
+        """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, F) and forces
         (B, K, 3): the LSTM, the force layers, the node embedding and the dense head."""
         B, K = wrench.shape[:2]
         if program:
