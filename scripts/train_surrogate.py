@@ -183,7 +183,7 @@ def build_model(task, a: Args) -> NodeLSTMSurrogate:
 
 def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
     """The ``--init-from`` checkpoint, checked for this run's task and architecture before any data is
-    generated; SystemExit naming --init-from otherwise."""
+    generated (:func:`start_from` widens it); SystemExit naming --init-from otherwise."""
     from cmlearn.surrogate.checkpoint import CheckpointError, load_checkpoint
     try:
         init, meta = load_checkpoint(a.init_from, task=task.name)
@@ -199,8 +199,7 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
                          f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden and --stencil at "
                          "least its own)")
-    meta = dict(meta, stencil=init.config.stencil)  # the offset scales of a ring added here come from the data
-    return init.widen(want.head_hidden, want.stencil), meta
+    return init, meta
 
 
 SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_scale")
@@ -208,23 +207,24 @@ SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_sc
 
 def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str) -> dict:
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
-    schedule. The scales must fit this run's data: the same data hash, or (regenerated data can differ in
-    its last bits, for example on another machine) the scales this data gives within 1e-5, over the variants
-    the checkpoint's own run trained on (with or without --val-fresh, with its --val-tail). A ring of neighbours
-    added by ``--stencil`` takes its offset scales from those variants. Returns the
-    provenance the new checkpoint records (the file's path and SHA-256, the command and data hash that made it)."""
+    schedule; a wider head or stencil of ``model`` is added to them first (:meth:`NodeLSTMSurrogate.widen`), the
+    added ring's offset scales from the data. The checkpoint's scales must fit this run's data: the same data
+    hash, or (regenerated data can differ in its last bits, for example on another machine) the scales this
+    data gives within 1e-5, over the variants the checkpoint's own run trained on (with or without
+    --val-fresh, with its --val-tail). Returns the provenance the new checkpoint records (the file's path and
+    SHA-256, the command and data hash that made it)."""
     run = meta.get("args", {})
     trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
     fresh = NodeLSTMSurrogate(model.config)  # the scales this run's data gives
     fresh.set_scales(trained, dm.wrench, float(init.length_scale))
-    ring = 6 * meta["stencil"]  # the offset scales the checkpoint holds; those of a ring added by --stencil are new
+    ring = 6 * init.config.stencil  # the offset scales the checkpoint holds; those of a ring it adds are new
     if meta.get("data_hash") != data["meta"]["data_hash"]:
         held = lambda m, k: getattr(m, k)[:, :ring] if k == "rel_scale" else getattr(m, k)  # noqa: E731
         off = max(float(((held(fresh, k) - held(init, k)).abs() / held(init, k).abs()).max()) for k in SCALES)
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                              f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative)")
-    model.load_state_dict(init.state_dict())
+    model.load_state_dict(init.widen(model.config.head_hidden, model.config.stencil).state_dict())
     model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
     return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
             "data_hash": meta.get("data_hash")}
