@@ -206,7 +206,8 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         assert [got[ax]["max_mm"] for ax in "xyz"] == pytest.approx([want[ax]["max_mm"] for ax in "xyz"], rel=1e-4,
                                                                    abs=1e-6)
     script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", "--rest-anchor", "--mirror",
-                  "zx", "--head-hidden", "16", "--init-from", "ck.pt"], tmp_path, "a --head-hidden and --stencil at least its own")
+                  "zx", "--head-hidden", "16", "--init-from", "ck.pt"], tmp_path,
+                 "a --head-hidden and --stencil at least its own")
     for extra, msg in ((["--init-from", "ck.pt", "--eta", "3"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
