@@ -166,15 +166,15 @@ class SurrogateTask:
             rest = self.equilibrium(self.base_scene())[list(self.tracked)]
             kw["rest_shape"] = tuple(tuple(float(x) for x in r) for r in rest.float())
         cfg = NodeLSTMConfig.chain(self.tracked, self.modeled, reflections=self.reflections(mirror), **kw)
-        if not self.links:
-            return cfg.with_stencil(stencil)
-        pos = {n: i for i, n in enumerate(self.tracked)}
-        left, right = list(cfg.left), list(cfg.right)
-        for j, m in enumerate(self.modeled):
-            if m in self.links:
-                left[j], right[j] = (pos[x] for x in self.links[m])
-        from dataclasses import replace
-        return replace(cfg, left=tuple(left), right=tuple(right)).with_stencil(stencil)
+        if self.links:
+            pos = {n: i for i, n in enumerate(self.tracked)}
+            left, right = list(cfg.left), list(cfg.right)
+            for j, m in enumerate(self.modeled):
+                if m in self.links:
+                    left[j], right[j] = (pos[x] for x in self.links[m])
+            from dataclasses import replace
+            cfg = replace(cfg, left=tuple(left), right=tuple(right))
+        return cfg.with_stencil(stencil)
 
     def record_every(self, scene: Scene) -> int:
         k = self.delta / scene.dt

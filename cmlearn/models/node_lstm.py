@@ -406,8 +406,9 @@ class NodeLSTMSurrogate(nn.Module):
         (net2net widening). The head's added units' incoming weights are drawn as a new layer's are, their
         outgoing weights are zero; the LSTM's weights on the second ring's features are zero. So nothing added
         changes an output until training moves it. For fine-tuning a model with more capacity
-        (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). The second ring's
-        offset scales (``rel_scale[:, 6:]``) are placeholders: set them from the data before training."""
+        (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). An added ring's
+        offset scales (``rel_scale[:, 6:]``) start at 1, which changes no step (its weights are zero); a training
+        run sets them from its data first, as ``--init-from`` does."""
         c = self.config
         head_hidden = c.head_hidden if head_hidden is None else head_hidden
         stencil = c.stencil if stencil is None else stencil
