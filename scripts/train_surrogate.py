@@ -51,9 +51,9 @@ class Args:
     hidden: int = opt(48, "LSTM hidden size per modelled node")
     head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM (with --init-from: "
                             "at least the checkpoint's; a wider head's added units start without effect)")
-    stencil: int = opt(1, "rings of neighbours each node sees: 1 (left, right) or 2 (also their outer neighbours: a "
-                          "five-node stencil, as bending needs); with --init-from at least the checkpoint's, the "
-                          "second ring's weights starting at zero", (1, 2))
+    stencil: int = opt(1, "rings of neighbours each node sees: 1 (left, right), 2 (also their outer neighbours: a "
+                          "five-node stencil, as bending needs) or 3 (seven nodes); with --init-from at least the "
+                          "checkpoint's, an added ring's weights starting at zero", (1, 2, 3))
     rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
                                    "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
                                    "no weights, so --init-from may add it")

@@ -590,21 +590,33 @@ def test_a_widened_head_or_stencil_steps_as_before_and_what_it_adds_learns():
         model.widen(head_hidden=32)
     with pytest.raises(ValueError, match="stencil must be >= the current stencil 2"):
         wide.widen(stencil=1)
+    wider = wide.widen(stencil=3)  # a third ring appended after the second's 12 features
+    assert torch.equal(wider.lstm.weight_ih_l0[:, :30], wide.lstm.weight_ih_l0)
+    assert not wider.lstm.weight_ih_l0[:, 30:].any()
+    with torch.no_grad():
+        assert torch.equal(wider(hist, wrench, ref.expand(2, -1, -1)), model(hist, wrench, ref.expand(2, -1, -1)))
 
 
-def test_a_five_node_stencil_sees_the_second_neighbours_and_freezes_as_it_runs():
-    """``stencil=2``: each node's second ring is the next tracked node beyond its first (the anchors and a free end
-    clamp it); its offsets are features 18-29, and only they change when a second neighbour alone moves; the frozen
-    and program forms equal the eager step with both mirrors; a bad stencil is an error naming it."""
+@pytest.mark.parametrize("stencil", [2, 3])
+def test_a_wider_stencil_sees_the_further_neighbours_and_freezes_as_it_runs(stencil):
+    """``stencil=2`` (five nodes) and ``3`` (seven): each further ring is the next tracked node beyond the last (the
+    anchors and a free end clamp it); the second ring's offsets are features 18-29, the third's 30-41, and only a
+    ring's offset changes move when that neighbour alone moves; the frozen and program forms equal the eager step
+    with both mirrors; a bad stencil is an error naming it."""
     task = get_task("semicircle")
-    cfg = task.model_config(stencil=2, mirror="zx", hidden=8, head_hidden=8)
+    cfg = task.model_config(stencil=stencil, mirror="zx", hidden=8, head_hidden=8)
+    assert cfg.stencil == stencil and [n for n, _ in cfg.rings()][-2:] == [f"left{stencil}", f"right{stencil}"]
     assert cfg.left2 == (0, 0) + tuple(range(1, 20)) and cfg.right2 == tuple(range(3, 22)) + (22, 22)
-    free = NodeLSTMConfig.chain((0, 1, 2, 3), (1, 2, 3), stencil=2)  # node 3 is a free end
+    assert cfg.left3 == ((0, 0, 0) + tuple(range(1, 19)) if stencil == 3 else ())
+    assert cfg.right3 == (tuple(range(4, 23)) + (22, 22) if stencil == 3 else ())
+    free = NodeLSTMConfig.chain((0, 1, 2, 3), (1, 2, 3), stencil=stencil)  # node 3 is a free end
     assert free.left2 == (0, 0, 1) and free.right2 == (3, 3, 3)  # none beyond the free end: itself
-    with pytest.raises(ValueError, match="stencil must be 1 or 2"):
-        NodeLSTMConfig.chain((0, 1, 2), (1, 2), stencil=3)
+    with pytest.raises(ValueError, match="stencil must be 1, 2 or 3"):
+        NodeLSTMConfig.chain((0, 1, 2), (1, 2), stencil=4)
     with pytest.raises(ValueError, match="left2 and right2"):
         replace(free, right2=())
+    with pytest.raises(ValueError, match="left3 and right3"):
+        replace(free, left2=(), right2=(), left3=(0, 0, 0), right3=(3, 3, 3))
     torch.manual_seed(0)
     model = NodeLSTMSurrogate(cfg)
     model.rel_scale.uniform_(1e-3, 2e-3)
@@ -613,12 +625,12 @@ def test_a_five_node_stencil_sees_the_second_neighbours_and_freezes_as_it_runs()
     model.a_scale.fill_(1e-4)
     ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None]
     hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
-    k = 5  # modelled node 5 (tracked 6): its second neighbours are tracked 4 and 8
-    moved = hist.clone()
-    moved[:, :, 8] += 1e-3
-    df = (model.features(moved, ref.expand(2, -1, -1)) - model.features(hist, ref.expand(2, -1, -1)))[:, k]
-    changed = (df.abs() > 0).any(0).any(0).nonzero().flatten().tolist()
-    assert changed == [21, 22, 23]  # right2's offset change (18-20 left2, 21-23 right2)
+    k = 5  # modelled node 5 (tracked 6): its second neighbours are tracked 4 and 8, its third 3 and 9
+    for node, cols in ((8, [21, 22, 23]), (9, [33, 34, 35]))[:stencil - 1]:  # right2's, right3's offset change
+        moved = hist.clone()
+        moved[:, :, node] += 1e-3
+        df = (model.features(moved, ref.expand(2, -1, -1)) - model.features(hist, ref.expand(2, -1, -1)))[:, k]
+        assert (df.abs() > 0).any(0).any(0).nonzero().flatten().tolist() == cols
     wrench = 0.02 * torch.randn(2, 21, 3)
     with torch.no_grad():
         eager = model.eval()(hist, wrench, ref.expand(2, -1, -1))

@@ -159,8 +159,8 @@ class SurrogateTask:
     def model_config(self, mirror: str = "", stencil: int = 1, **kw):
         """:class:`~cmlearn.models.NodeLSTMConfig` over the tracked chain with the ``links`` overrides, made
         equivariant under the reflections ``mirror`` (axis letters of ``mirrors``, e.g. ``"zx"``) where given,
-        with ``stencil`` rings of neighbours (``NodeLSTMConfig.with_stencil``: the second beyond the overridden
-        first)."""
+        with ``stencil`` rings of neighbours (``NodeLSTMConfig.with_stencil``: each further one beyond the
+        overridden first)."""
         from cmlearn.models import NodeLSTMConfig
         if kw.get("rest_anchor") and self.equilibrium is not None and "rest_shape" not in kw:
             rest = self.equilibrium(self.base_scene())[list(self.tracked)]

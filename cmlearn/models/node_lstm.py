@@ -10,8 +10,8 @@ under the large constant coordinates:
   of its neighbour offsets ``((p_j - p_k) - (p_j - p_k)^ref) / d_k`` (j = left, right), its step
   ``(p_k(tau) - p_k(tau - 1)) / v_k`` and the reference offsets ``(p_j - p_k)^ref / L``; with
   ``stencil=2`` (30 features) the same two offset terms for the second neighbours too (``left2``,
-  ``right2``: a five-node stencil, as the bending of a rod tracked by positions needs), appended; through
-  an LSTM;
+  ``right2``: a five-node stencil, as the bending of a rod tracked by positions needs), appended, and with
+  ``stencil=3`` (42) for the third (``left3``, ``right3``: seven nodes) after them; through an LSTM;
 * Input II: the node force ``/ f_scale`` through two dense layers;
 * the LSTM's last output, the force features and a learned node embedding are concatenated and a
   dense head outputs the node's normalised second difference ``a_k``; the next position is
@@ -91,11 +91,20 @@ class NodeLSTMConfig:
     reflections: tuple[tuple[int, tuple[int, ...] | None], ...] = ()
     left2: tuple[int, ...] = ()    # with a five-node stencil: the left neighbour's left neighbour (() otherwise)
     right2: tuple[int, ...] = ()   # ... the right neighbour's right neighbour (the node itself beyond a free end)
+    left3: tuple[int, ...] = ()    # with a seven-node stencil: the next beyond left2 (() otherwise)
+    right3: tuple[int, ...] = ()   # ... the next beyond right2
 
     @property
     def stencil(self) -> int:
-        """Rings of neighbours each modelled node sees: 1 (left, right) or 2 (also left2, right2)."""
-        return 2 if self.left2 else 1
+        """Rings of neighbours each modelled node sees: 1 (left, right), 2 (also left2, right2) or 3 (also left3,
+        right3)."""
+        return 3 if self.left3 else 2 if self.left2 else 1
+
+    def rings(self) -> list[tuple[str, tuple[int, ...]]]:
+        """The neighbour lists of the stencil, ring by ring, left before right: ``[("left", left), ("right",
+        right), ...]``."""
+        return [(f"{side}{r if r > 1 else ''}", getattr(self, f"{side}{r if r > 1 else ''}"))
+                for r in range(1, self.stencil + 1) for side in ("left", "right")]
 
     def __post_init__(self):
         K = len(self.modeled)
@@ -103,6 +112,9 @@ class NodeLSTMConfig:
             raise ValueError("modeled, left and right must be non-empty and of equal length")
         if (len(self.left2), len(self.right2)) not in ((0, 0), (K, K)):
             raise ValueError("left2 and right2 (the second neighbours) must both be empty or both as long as modeled")
+        if (len(self.left3), len(self.right3)) not in ((0, 0), (K, K)) or (self.left3 and not self.left2):
+            raise ValueError("left3 and right3 (the third neighbours) must both be empty or, with left2 and right2, "
+                             "both as long as modeled")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
         for name in ("hidden", "wrench_hidden", "embedding", "head_hidden"):
@@ -124,7 +136,7 @@ class NodeLSTMConfig:
                                             or any(len(r) != 3 for r in self.rest_shape)):
             raise ValueError(f"rest_shape must be n_tracked = {self.n_tracked} rows of 3 coordinates, given with "
                              "rest_anchor")
-        for name in ("modeled", "left", "right", "left2", "right2"):
+        for name in ("modeled", "left", "right", "left2", "right2", "left3", "right3"):
             if not all(0 <= i < self.n_tracked for i in getattr(self, name)):
                 raise ValueError(f"{name} indices must lie in [0, n_tracked)")
 
@@ -140,18 +152,18 @@ class NodeLSTMConfig:
         return cfg.with_stencil(stencil)
 
     def with_stencil(self, stencil: int) -> "NodeLSTMConfig":
-        """This config with one ring of neighbours (``stencil=1``) or two (``2``): the second neighbours are the
-        next tracked nodes beyond the (possibly overridden) first ones, clamped at the chain's ends, none beyond a
-        free end. A rod tracked by positions alone bends by the curvature at its neighbours, which depends on
-        theirs: a five-node stencil."""
-        if stencil not in (1, 2):
-            raise ValueError(f"stencil must be 1 or 2, got {stencil!r}")
-        if stencil == 1:
-            return replace(self, left2=(), right2=())
-        last = self.n_tracked - 1
-        left2 = tuple(max(i - 1, 0) for i in self.left)
-        right2 = tuple(m if r == m else min(r + 1, last) for r, m in zip(self.right, self.modeled))
-        return replace(self, left2=left2, right2=right2)
+        """This config with one ring of neighbours (``stencil=1``), two (``2``) or three (``3``): each further
+        ring is the next tracked nodes beyond the last (the first possibly overridden), clamped at the chain's
+        ends, none beyond a free end. A rod tracked by positions alone bends by the curvature at its neighbours,
+        which depends on theirs: a five-node stencil."""
+        if stencil not in (1, 2, 3):
+            raise ValueError(f"stencil must be 1, 2 or 3, got {stencil!r}")
+        last, rings, left, right = self.n_tracked - 1, {}, self.left, self.right
+        for r in (2, 3):
+            left = tuple(max(i - 1, 0) for i in left)
+            right = tuple(m if i == m else min(i + 1, last) for i, m in zip(right, self.modeled))
+            rings[f"left{r}"], rings[f"right{r}"] = (left, right) if r <= stencil else ((), ())
+        return replace(self, **rings)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -204,8 +216,8 @@ class NodeLSTMSurrogate(nn.Module):
                                   nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
-        rings = (("left", c.left), ("right", c.right)) + ((("left2", c.left2), ("right2", c.right2)) if c.left2 else ())
-        for name, idx in (("modeled", c.modeled),) + rings:
+        rings = c.rings()
+        for name, idx in [("modeled", c.modeled)] + rings:
             self.register_buffer(f"idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
         self._rings = [name for name, _ in rings]
         movable = torch.zeros(c.n_tracked)
@@ -318,21 +330,23 @@ class NodeLSTMSurrogate(nn.Module):
 
     def _offsets(self, p: Tensor) -> Tensor:
         """Neighbour offsets (..., K, 6 * stencil) of positions (..., n_tracked, 3), ring by ring (left, right,
-        then left2, right2); zero beyond a free end."""
+        then left2, right2, ...); zero beyond a free end."""
         pk = p[..., self.idx_modeled, :]
         off = [p[..., self.idx_left, :] - pk, (p[..., self.idx_right, :] - pk) * self.has_right]
         return torch.cat(off + [p[..., getattr(self, f"idx_{r}"), :] - pk for r in self._rings[2:]], -1)
 
     def features(self, hist: Tensor, ref: Tensor) -> Tensor:
         """(B, W, n_tracked, 3) history and (B, n_tracked, 3) reference -> (B, K, W, F) Input Layer I: the
-        first ring's 18 features, then the second ring's 12 where the stencil has one."""
+        first ring's 18 features, then 12 for each further ring of the stencil (its offsets' changes and reference
+        offsets), so that a widened stencil appends features (:meth:`widen`)."""
         pk = hist[:, :, self.idx_modeled]
         rel0 = self._offsets(ref)[:, None]
         disp = (pk - ref[:, None, self.idx_modeled]) / self.disp_scale
         drel = (self._offsets(hist) - rel0) / self.rel_scale
         step = torch.cat([torch.zeros_like(pk[:, :1]), pk[:, 1:] - pk[:, :-1]], 1) / self.v_scale
         geo = (rel0 / self.length_scale).expand(-1, hist.shape[1], -1, -1)
-        return torch.cat([disp, drel[..., :6], step, geo[..., :6], drel[..., 6:], geo[..., 6:]], -1).transpose(1, 2)
+        outer = [t[..., r:r + 6] for r in range(6, drel.shape[-1], 6) for t in (drel, geo)]
+        return torch.cat([disp, drel[..., :6], step, geo[..., :6]] + outer, -1).transpose(1, 2)
 
     @torch.no_grad()
     def freeze_features(self) -> "NodeLSTMSurrogate":
@@ -350,7 +364,7 @@ class NodeLSTMSurrogate(nn.Module):
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
         dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * F)
-        nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 3 or 5)
+        nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 1 + 2 stencil)
         frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
         rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3 or 5, 3)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
@@ -404,10 +418,10 @@ class NodeLSTMSurrogate(nn.Module):
         """A copy with a wider dense head (``head_hidden`` units per hidden layer, at least the current width)
         and/or a wider stencil (``stencil``, at least the current one) that steps exactly as this model does
         (net2net widening). The head's added units' incoming weights are drawn as a new layer's are, their
-        outgoing weights are zero; the LSTM's weights on the second ring's features are zero. So nothing added
+        outgoing weights are zero; the LSTM's weights on an added ring's features are zero. So nothing added
         changes an output until training moves it. For fine-tuning a model with more capacity
         (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). An added ring's
-        offset scales (``rel_scale[:, 6:]``) start at 1, which changes no step (its weights are zero); a training
+        offset scales (``rel_scale[:, 6 * stencil:]`` of the current stencil) start at 1, which changes no step (its weights are zero); a training
         run sets them from its data first, as ``--init-from`` does."""
         c = self.config
         head_hidden = c.head_hidden if head_hidden is None else head_hidden

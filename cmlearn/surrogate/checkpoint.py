@@ -51,7 +51,7 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
     cfg = dict(blob["config"])
-    for key in ("modeled", "left", "right", "left2", "right2"):
+    for key in ("modeled", "left", "right", "left2", "right2", "left3", "right3"):
         if cfg.get(key) is not None:
             cfg[key] = tuple(cfg[key])
     if "mirror_axis" in cfg:  # a one-reflection checkpoint from before the symmetry groups (2026-11-25)
