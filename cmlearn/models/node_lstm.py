@@ -103,8 +103,8 @@ class NodeLSTMConfig:
     def rings(self) -> list[tuple[str, tuple[int, ...]]]:
         """The neighbour lists of the stencil, ring by ring, left before right: ``[("left", left), ("right",
         right), ...]``."""
-        return [(f"{side}{r if r > 1 else ''}", getattr(self, f"{side}{r if r > 1 else ''}"))
-                for r in range(1, self.stencil + 1) for side in ("left", "right")]
+        names = [f"{side}{'' if r == 1 else r}" for r in range(1, self.stencil + 1) for side in ("left", "right")]
+        return [(name, getattr(self, name)) for name in names]
 
     def __post_init__(self):
         K = len(self.modeled)
@@ -364,7 +364,7 @@ class NodeLSTMSurrogate(nn.Module):
         D = (W + 1) * N * 3
         basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
         dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * F)
-        nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 1 + 2 stencil)
+        nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 1 + 2 s)
         frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
         rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3 or 5, 3)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
@@ -421,8 +421,8 @@ class NodeLSTMSurrogate(nn.Module):
         outgoing weights are zero; the LSTM's weights on an added ring's features are zero. So nothing added
         changes an output until training moves it. For fine-tuning a model with more capacity
         (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). An added ring's
-        offset scales (``rel_scale[:, 6 * stencil:]`` of the current stencil) start at 1, which changes no step (its weights are zero); a training
-        run sets them from its data first, as ``--init-from`` does."""
+        offset scales (``rel_scale[:, 6 * stencil:]``, ``stencil`` the current one) start at 1, which changes no
+        step (its weights are zero); a training run sets them from its data first, as ``--init-from`` does."""
         c = self.config
         head_hidden = c.head_hidden if head_hidden is None else head_hidden
         stencil = c.stencil if stencil is None else stencil
