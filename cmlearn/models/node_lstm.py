@@ -366,7 +366,7 @@ class NodeLSTMSurrogate(nn.Module):
         dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * F)
         nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 1 + 2 s)
         frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
-        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 3 or 5, 3)
+        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 1 + 2 s, 3)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
         blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * F))
         first = torch.ones_like(rows, dtype=torch.bool)  # a neighbour that is the node itself (free end) counts once
