@@ -54,6 +54,10 @@ class Args:
     stencil: int = opt(1, "rings of neighbours each node sees: 1 (left, right), 2 (also their outer neighbours: a "
                           "five-node stencil, as bending needs) or 3 (seven nodes); with --init-from at least the "
                           "checkpoint's, an added ring's weights starting at zero", (1, 2, 3))
+    mix: int = opt(0, "rings of neighbouring modelled nodes whose LSTM outputs each node's dense head also sees: 0 "
+                      "(none), 1 (left and right: a second local layer, five nodes in view with --stencil 1) or 2 "
+                      "(seven); with --init-from at least the checkpoint's, the added inputs' weights starting at zero",
+                   (0, 1, 2))
     rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
                                    "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
                                    "no weights, so --init-from may add it")
@@ -174,7 +178,7 @@ def parse(argv=None) -> Args:
 
 def model_config(task, a: Args):
     return task.model_config(eta=a.eta, hidden=a.hidden, head_hidden=a.head_hidden, rest_anchor=a.rest_anchor,
-                             chord_projection=a.chord_projection, mirror=a.mirror, stencil=a.stencil)
+                             chord_projection=a.chord_projection, mirror=a.mirror, stencil=a.stencil, mix=a.mix)
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
@@ -191,14 +195,14 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         raise SystemExit(f"--init-from: {e}") from None
     want = model_config(task, a)
     # the chord projection, the rest anchor and the mirrors have no weights: a run may add or drop them; a wider
-    # head or stencil is added as weights that start without effect (NodeLSTMSurrogate.widen)
+    # head, stencil or mix is added as weights that start without effect (NodeLSTMSurrogate.widen)
     if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
                rest_shape=want.rest_shape, reflections=want.reflections,
-               head_hidden=max(init.config.head_hidden, want.head_hidden)
+               head_hidden=max(init.config.head_hidden, want.head_hidden), mix=max(init.config.mix, want.mix)
                ).with_stencil(max(init.config.stencil, want.stencil)) != want:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden and --stencil at "
-                         "least its own)")
+                         f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden, --stencil and "
+                         "--mix at least its own)")
     return init, meta
 
 
@@ -207,7 +211,7 @@ SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_sc
 
 def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str) -> dict:
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
-    schedule; a wider head or stencil of ``model`` is added to them first (:meth:`NodeLSTMSurrogate.widen`), the
+    schedule; a wider head, stencil or mix of ``model`` is added to them first (:meth:`NodeLSTMSurrogate.widen`), the
     added ring's offset scales from the data. The checkpoint's scales must fit this run's data: the same data
     hash, or (regenerated data can differ in its last bits, for example on another machine) the scales this
     data gives within 1e-5, over the variants the checkpoint's own run trained on (with or without
@@ -224,7 +228,7 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                              f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative)")
-    model.load_state_dict(init.widen(model.config.head_hidden, model.config.stencil).state_dict())
+    model.load_state_dict(init.widen(model.config.head_hidden, model.config.stencil, model.config.mix).state_dict())
     model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
     return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
             "data_hash": meta.get("data_hash")}

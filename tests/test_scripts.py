@@ -187,15 +187,20 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     assert all(torch.equal(src[k], cp[k]) for k in src)
     cp_arch = json.loads((tmp_path / "cp.json").read_text())["architecture"]
     assert cp_arch["chord_projection"] and cp_arch["reflections"] == []
-    # a wider head and stencil start from the same steps: at lr 0 the same errors, the old weights inside the new,
-    # the second ring's offset scales from the data
+    # a wider head, stencil and mix start from the same steps: at lr 0 the same errors, the old weights inside the
+    # new, the second ring's offset scales from the data
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
-                "--rest-anchor", "--mirror", "zx", "--head-hidden", "40", "--stencil", "2", "--init-from", "ck.pt",
+                "--rest-anchor", "--mirror", "zx", "--head-hidden", "40", "--stencil", "2", "--mix", "1",
+                "--init-from", "ck.pt",
                 "--lr", "0", "--epochs", "1", "--out", "wide.pt", "--log-dir", "logs_wide"], tmp_path)
     wide, wide_meta = torch.load(tmp_path / "wide.pt", weights_only=True)["state_dict"], \
         json.loads((tmp_path / "wide.json").read_text())
     assert wide_meta["architecture"]["head_hidden"] == 40 and wide["head.2.weight"].shape == (40, 40)
     assert torch.equal(wide["head.2.weight"][:24, :24], src["head.2.weight"])
+    n_in = src["head.0.weight"].shape[1]  # the neighbours' LSTM outputs come after the head's own inputs
+    assert wide_meta["architecture"]["mix"] == 1 and wide["head.0.weight"].shape[1] == n_in + 2 * 48
+    assert torch.equal(wide["head.0.weight"][:24, :n_in], src["head.0.weight"]) and \
+        not wide["head.0.weight"][:, n_in:].any()
     assert wide_meta["architecture"]["right2"][0] == 3 and wide["lstm.weight_ih_l0"].shape[1] == 30
     assert torch.equal(wide["lstm.weight_ih_l0"][:, :18], src["lstm.weight_ih_l0"])
     assert not wide["lstm.weight_ih_l0"][:, 18:].any() and torch.equal(wide["rel_scale"][:, :6], src["rel_scale"])
@@ -207,7 +212,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                                                                    abs=1e-6)
     script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", "--rest-anchor", "--mirror",
                   "zx", "--head-hidden", "16", "--init-from", "ck.pt"], tmp_path,
-                 "a --head-hidden and --stencil at least its own")
+                 "a --head-hidden, --stencil and --mix at least its own")
     for extra, msg in ((["--init-from", "ck.pt", "--eta", "3"], "--init-from: ck.pt has architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)

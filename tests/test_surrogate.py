@@ -639,6 +639,51 @@ def test_a_wider_stencil_sees_the_further_neighbours_and_freezes_as_it_runs(sten
         assert (model(hist, wrench, ref.expand(2, -1, -1), program=True) - eager).abs().max() < 1e-7
 
 
+@pytest.mark.parametrize("mix", [1, 2])
+def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_as_it_runs(mix):
+    """``mix=1`` and ``2``: the head also sees the LSTM outputs of the modelled neighbours one (and two) nodes away,
+    so with a three-node stencil a node's step moves with the nodes 2 (and 3) away and no further; none across an
+    anchor or beyond a free end; the frozen and program forms equal the eager step with both mirrors; the shipped
+    model widened to it steps as before and learns on the added inputs; a bad or narrower mix is an error naming
+    it."""
+    free = NodeLSTMConfig.chain((0, 1, 2, 3, 4), (1, 2, 3, 4), mix=mix)  # anchor 0, free end 4: "none" is slot 4
+    assert free.mix_neighbours() == [(4, 0, 1, 2), (1, 2, 3, 4), (4, 4, 0, 1), (2, 3, 4, 4)][:2 * mix]
+    with pytest.raises(ValueError, match="mix .* must be 0, 1 or 2"):
+        replace(free, mix=3)
+    task = get_task("semicircle")
+    torch.manual_seed(0)
+    model = NodeLSTMSurrogate(task.model_config(mirror="zx", hidden=8, head_hidden=8, mix=mix)).eval()
+    assert model.head[0].in_features == 8 * (1 + 2 * mix) + 16 + 8
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    model.rel_scale.uniform_(1e-3, 2e-3)
+    model.disp_scale.fill_(1e-2)
+    model.v_scale.fill_(1e-3)
+    model.a_scale.fill_(1e-4)
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None].expand(2, -1, -1)
+    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
+    wrench = 0.02 * torch.randn(2, 21, 3)
+    with torch.no_grad():
+        eager = model(hist, wrench, ref)
+        moved = []
+        for node in range(ref.shape[1]):
+            shifted = hist.clone()
+            shifted[:, :, node] += 1e-3
+            moved.append(bool((model(shifted, wrench, ref) - eager)[:, 5].abs().max() > 0))  # modelled 5: tracked 6
+        assert [n for n, m in enumerate(moved) if m] == list(range(5 - mix, 8 + mix))
+        model.freeze_features()
+        assert (model(hist, wrench, ref) - eager).abs().max() < 1e-7
+        assert (model(hist, wrench, ref, program=True) - eager).abs().max() < 1e-7
+    shipped, _ = load_checkpoint(ROOT / "checkpoints" / "semicircle.pt")
+    wide = shipped.widen(mix=mix)
+    with torch.no_grad():
+        assert torch.equal(wide(hist, wrench, ref), shipped(hist, wrench, ref))
+    wide(hist, wrench, ref).square().sum().backward()
+    assert wide.head[0].weight.grad[:, shipped.head[0].in_features:].abs().amax(0).min() > 0
+    with pytest.raises(ValueError, match="mix must be >= the current mix"):
+        wide.widen(mix=mix - 1)
+
+
 def test_small_training_run_reduces_the_loss(tiny):
     L = pytest.importorskip("lightning")
     dm, model, module = tiny_training(tiny, 20)

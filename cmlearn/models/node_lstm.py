@@ -13,8 +13,12 @@ under the large constant coordinates:
   ``right2``: a five-node stencil, as the bending of a rod tracked by positions needs), appended, and with
   ``stencil=3`` (42) for the third (``left3``, ``right3``: seven nodes) after them; through an LSTM;
 * Input II: the node force ``/ f_scale`` through two dense layers;
-* the LSTM's last output, the force features and a learned node embedding are concatenated and a
-  dense head outputs the node's normalised second difference ``a_k``; the next position is
+* the LSTM's last output, the force features and a learned node embedding are concatenated (with
+  ``mix=1`` also the LSTM outputs of the node's modelled neighbours, with ``mix=2`` theirs too, after them:
+  the head becomes a second local layer, so a node's step sees five or seven nodes with a three-node
+  stencil, through two layers rather than one, as a convolution along the rod does; zero for an anchor, a
+  free end's right and beyond them) and a dense head outputs the node's normalised second difference
+  ``a_k``; the next position is
   ``p_k(t+1) = 2 p_k(t) - p_k(t-1) + a_k * a_scale_k`` (a Stormer-Verlet-like update, so a zero
   output continues the current motion).
 
@@ -93,6 +97,7 @@ class NodeLSTMConfig:
     right2: tuple[int, ...] = ()   # ... the right neighbour's right neighbour (the node itself beyond a free end)
     left3: tuple[int, ...] = ()    # with a seven-node stencil: the next beyond left2 (() otherwise)
     right3: tuple[int, ...] = ()   # ... the next beyond right2
+    mix: int = 0                   # rings of neighbouring modelled nodes whose LSTM outputs the head also sees
 
     @property
     def stencil(self) -> int:
@@ -117,6 +122,8 @@ class NodeLSTMConfig:
                              "both as long as modeled")
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
+        if self.mix not in (0, 1, 2):
+            raise ValueError(f"mix (rings of neighbours' LSTM outputs the head sees) must be 0, 1 or 2, got {self.mix!r}")
         for name in ("hidden", "wrench_hidden", "embedding", "head_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} (layer width) must be >= 1, got {getattr(self, name)}")
@@ -165,6 +172,20 @@ class NodeLSTMConfig:
             rings[f"left{r}"], rings[f"right{r}"] = (left, right) if r <= stencil else ((), ())
         return replace(self, **rings)
 
+    def mix_neighbours(self) -> list[tuple[int, ...]]:
+        """The modelled nodes whose LSTM outputs each modelled node's head sees besides its own, ring by ring, left
+        before right, as slots in ``modeled`` (``len(modeled)``: none, as for an anchor, a free end's right or
+        beyond either): the first ring the modelled ``left`` and ``right`` neighbours, each further ring theirs."""
+        K, slot = len(self.modeled), {m: j for j, m in enumerate(self.modeled)}
+        step = {"left": [slot.get(n, K) for n in self.left],
+                "right": [K if n == m else slot.get(n, K) for n, m in zip(self.right, self.modeled)]}
+        out, ring = [], {side: list(range(K)) for side in step}
+        for _ in range(self.mix):
+            for side in ("left", "right"):
+                ring[side] = [K if j == K else step[side][j] for j in ring[side]]
+                out.append(tuple(ring[side]))
+        return out
+
     def to_dict(self) -> dict:
         return asdict(self)
 
@@ -212,7 +233,8 @@ class NodeLSTMSurrogate(nn.Module):
         self.lstm = nn.LSTM(self.n_features, c.hidden, batch_first=True)
         self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
         self.embed = nn.Embedding(K, c.embedding)
-        self.head = nn.Sequential(nn.Linear(c.hidden + c.wrench_hidden + c.embedding, c.head_hidden), nn.Tanh(),
+        self.head = nn.Sequential(nn.Linear(c.hidden * (1 + 2 * c.mix) + c.wrench_hidden + c.embedding, c.head_hidden),
+                                  nn.Tanh(),
                                   nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
@@ -220,6 +242,9 @@ class NodeLSTMSurrogate(nn.Module):
         for name, idx in [("modeled", c.modeled)] + rings:
             self.register_buffer(f"idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
         self._rings = [name for name, _ in rings]
+        mixed = c.mix_neighbours()
+        self.register_buffer("idx_mix", torch.tensor(mixed, dtype=torch.long).t().reshape(-1) if mixed else None,
+                             persistent=False)  # (K * 2 mix,): node k's mixed slots, k-major; K for none
         movable = torch.zeros(c.n_tracked)
         movable[list(c.modeled)] = 1.0
         self.register_buffer("movable", movable, persistent=False)  # (n_tracked,): 1 modelled, 0 anchor
@@ -414,11 +439,13 @@ class NodeLSTMSurrogate(nn.Module):
         self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
         self._lstm_stacked = None
 
-    def widen(self, head_hidden: int | None = None, stencil: int | None = None) -> "NodeLSTMSurrogate":
-        """A copy with a wider dense head (``head_hidden`` units per hidden layer, at least the current width)
-        and/or a wider stencil (``stencil``, at least the current one) that steps exactly as this model does
-        (net2net widening). The head's added units' incoming weights are drawn as a new layer's are, their
-        outgoing weights are zero; the LSTM's weights on an added ring's features are zero. So nothing added
+    def widen(self, head_hidden: int | None = None, stencil: int | None = None,
+              mix: int | None = None) -> "NodeLSTMSurrogate":
+        """A copy with a wider dense head (``head_hidden`` units per hidden layer, at least the current width),
+        a wider stencil (``stencil``, at least the current one) and/or more rings of neighbours' LSTM outputs in
+        the head (``mix``, at least the current) that steps exactly as this model does (net2net widening). The
+        head's added units' incoming weights are drawn as a new layer's are, their outgoing weights are zero; the
+        LSTM's weights on an added ring's features and the head's on added neighbours' outputs are zero. So nothing added
         changes an output until training moves it. For fine-tuning a model with more capacity
         (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). An added ring's
         offset scales (``rel_scale[:, 6 * stencil:]``, ``stencil`` the current one) start at 1, which changes no
@@ -426,13 +453,18 @@ class NodeLSTMSurrogate(nn.Module):
         c = self.config
         head_hidden = c.head_hidden if head_hidden is None else head_hidden
         stencil = c.stencil if stencil is None else stencil
+        mix = c.mix if mix is None else mix
+        if mix < c.mix:
+            raise ValueError(f"mix must be >= the current mix {c.mix}, got {mix}")
         if head_hidden < c.head_hidden:
             raise ValueError(f"head_hidden must be >= the current width {c.head_hidden}, got {head_hidden}")
         if stencil < c.stencil:
             raise ValueError(f"stencil must be >= the current stencil {c.stencil}, got {stencil}")
-        wide = NodeLSTMSurrogate(replace(c, head_hidden=head_hidden).with_stencil(stencil)).to(self.length_scale.device)
+        wide = NodeLSTMSurrogate(replace(c, head_hidden=head_hidden, mix=mix).with_stencil(stencil)
+                                 ).to(self.length_scale.device)
         state = wide.state_dict()
         state["lstm.weight_ih_l0"][:, self.n_features:] = 0.0  # no input from the added ring
+        state["head.0.weight"][:, self.head[0].in_features:] = 0.0  # none from the added neighbours' outputs
         for name, value in self.state_dict().items():
             if name.startswith("head.") and name.endswith(".weight") and name != "head.0.weight":
                 state[name][:, c.head_hidden:] = 0.0  # no output from the added units
@@ -523,7 +555,11 @@ class NodeLSTMSurrogate(nn.Module):
             h, mlp = self._lstm_last(f) if self.training else self.lstm(f)[0][:, -1], nn.Module.__call__
         wf = mlp(self.wrench, wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
-        return mlp(self.head, torch.cat([h.reshape(B, K, -1), wf, emb], -1)) * self.a_scale
+        h = h.reshape(B, K, -1)
+        parts = [h, wf, emb]
+        if self.idx_mix is not None:  # the neighbours' LSTM outputs, zero for none
+            parts.append(torch.cat([h, h.new_zeros(B, 1, h.shape[-1])], 1)[:, self.idx_mix].reshape(B, K, -1))
+        return mlp(self.head, torch.cat(parts, -1)) * self.a_scale
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
         """The head's output (B, K, 3) at rest: every history frame the reference shape (B, n_tracked, 3),
