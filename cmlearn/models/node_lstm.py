@@ -123,7 +123,8 @@ class NodeLSTMConfig:
         if self.eta < 2:
             raise ValueError(f"eta (history horizon) must be >= 2, got {self.eta}")
         if self.mix not in (0, 1, 2):
-            raise ValueError(f"mix (rings of neighbours' LSTM outputs the head sees) must be 0, 1 or 2, got {self.mix!r}")
+            raise ValueError(f"mix (rings of neighbours' LSTM outputs the head sees) must be 0, 1 or 2, "
+                             f"got {self.mix!r}")
         for name in ("hidden", "wrench_hidden", "embedding", "head_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} (layer width) must be >= 1, got {getattr(self, name)}")
@@ -233,8 +234,8 @@ class NodeLSTMSurrogate(nn.Module):
         self.lstm = nn.LSTM(self.n_features, c.hidden, batch_first=True)
         self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
         self.embed = nn.Embedding(K, c.embedding)
-        self.head = nn.Sequential(nn.Linear(c.hidden * (1 + 2 * c.mix) + c.wrench_hidden + c.embedding, c.head_hidden),
-                                  nn.Tanh(),
+        n_in = c.hidden * (1 + 2 * c.mix) + c.wrench_hidden + c.embedding  # own LSTM output, force, embedding, mixed
+        self.head = nn.Sequential(nn.Linear(n_in, c.head_hidden), nn.Tanh(),
                                   nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
@@ -445,9 +446,9 @@ class NodeLSTMSurrogate(nn.Module):
         a wider stencil (``stencil``, at least the current one) and/or more rings of neighbours' LSTM outputs in
         the head (``mix``, at least the current) that steps exactly as this model does (net2net widening). The
         head's added units' incoming weights are drawn as a new layer's are, their outgoing weights are zero; the
-        LSTM's weights on an added ring's features and the head's on added neighbours' outputs are zero. So nothing added
-        changes an output until training moves it. For fine-tuning a model with more capacity
-        (``train_surrogate.py --init-from`` with a larger ``--head-hidden`` or ``--stencil``). An added ring's
+        LSTM's weights on an added ring's features and the head's on added neighbours' outputs are zero. So
+        nothing added changes an output until training moves it. For fine-tuning a model with more capacity
+        (``train_surrogate.py --init-from`` with a larger ``--head-hidden``, ``--stencil`` or ``--mix``). An added ring's
         offset scales (``rel_scale[:, 6 * stencil:]``, ``stencil`` the current one) start at 1, which changes no
         step (its weights are zero); a training run sets them from its data first, as ``--init-from`` does."""
         c = self.config
