@@ -178,12 +178,12 @@ class NodeLSTMConfig:
         before right, as slots in ``modeled`` (``len(modeled)``: none, as for an anchor, a free end's right or
         beyond either): the first ring the modelled ``left`` and ``right`` neighbours, each further ring theirs."""
         K, slot = len(self.modeled), {m: j for j, m in enumerate(self.modeled)}
-        step = {"left": [slot.get(n, K) for n in self.left],
-                "right": [K if n == m else slot.get(n, K) for n, m in zip(self.right, self.modeled)]}
+        step = {"left": [slot.get(n, K) for n in self.left] + [K],  # none's neighbour is none
+                "right": [K if n == m else slot.get(n, K) for n, m in zip(self.right, self.modeled)] + [K]}
         out, ring = [], {side: list(range(K)) for side in step}
         for _ in range(self.mix):
             for side in ("left", "right"):
-                ring[side] = [K if j == K else step[side][j] for j in ring[side]]
+                ring[side] = [step[side][j] for j in ring[side]]
                 out.append(tuple(ring[side]))
         return out
 
@@ -559,7 +559,7 @@ class NodeLSTMSurrogate(nn.Module):
         h = h.reshape(B, K, -1)
         parts = [h, wf, emb]
         if self.idx_mix is not None:  # the neighbours' LSTM outputs, zero for none
-            parts.append(torch.cat([h, h.new_zeros(B, 1, h.shape[-1])], 1)[:, self.idx_mix].reshape(B, K, -1))
+            parts.append(nn.functional.pad(h, (0, 0, 0, 1))[:, self.idx_mix].reshape(B, K, -1))
         return mlp(self.head, torch.cat(parts, -1)) * self.a_scale
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
