@@ -58,6 +58,10 @@ class Args:
                       "(none), 1 (left and right: a second local layer, five nodes in view with --stencil 1) or 2 "
                       "(seven); with --init-from at least the checkpoint's, the added inputs' weights starting at zero",
                    (0, 1, 2))
+    mix_width: int = opt(0, "with --mix: each neighbour's LSTM output reaches the head through a shared linear "
+                            "projection to this many numbers (0: the whole output), a cheaper step; with --init-from "
+                            "any, the checkpoint's weights on the neighbours' outputs taken to their best "
+                            "approximation of that rank (exact at its own width or more)")
     rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
                                    "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
                                    "no weights, so --init-from may add it")
@@ -147,6 +151,9 @@ def parse(argv=None) -> Args:
         ap.error(f"--val-seed must differ from --seed {a.seed}: the fresh variants would be the training ones")
     if a.hidden < 1 or a.head_hidden < 1:
         ap.error(f"--hidden and --head-hidden must be >= 1, got {a.hidden} and {a.head_hidden}")
+    if a.mix_width and not (a.mix and 1 <= a.mix_width <= a.hidden):
+        ap.error(f"--mix-width must be 0, or in 1..--hidden ({a.hidden}) with --mix 1 or 2, got {a.mix_width} with "
+                 f"--mix {a.mix}")
     if not 0.0 <= a.ema < 1.0:
         ap.error(f"--ema must lie in [0, 1) (0: off), got {a.ema}")
     if a.max_time < 0:
@@ -178,7 +185,8 @@ def parse(argv=None) -> Args:
 
 def model_config(task, a: Args):
     return task.model_config(eta=a.eta, hidden=a.hidden, head_hidden=a.head_hidden, rest_anchor=a.rest_anchor,
-                             chord_projection=a.chord_projection, mirror=a.mirror, stencil=a.stencil, mix=a.mix)
+                             chord_projection=a.chord_projection, mirror=a.mirror, stencil=a.stencil, mix=a.mix,
+                             mix_width=a.mix_width)
 
 
 def build_model(task, a: Args) -> NodeLSTMSurrogate:
@@ -198,8 +206,8 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
     # head, stencil or mix is added as weights that start without effect (NodeLSTMSurrogate.widen)
     if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
                rest_shape=want.rest_shape, reflections=want.reflections,
-               head_hidden=max(init.config.head_hidden, want.head_hidden), mix=max(init.config.mix, want.mix)
-               ).with_stencil(max(init.config.stencil, want.stencil)) != want:
+               head_hidden=max(init.config.head_hidden, want.head_hidden), mix=max(init.config.mix, want.mix),
+               mix_width=want.mix_width).with_stencil(max(init.config.stencil, want.stencil)) != want:
         raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
                          f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden, --stencil and "
                          "--mix at least its own)")
@@ -212,7 +220,8 @@ SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_sc
 def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str) -> dict:
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
     schedule; a wider head, stencil or mix of ``model`` is added to them first (:meth:`NodeLSTMSurrogate.widen`), the
-    added ring's offset scales from the data. The checkpoint's scales must fit this run's data: the same data
+    added ring's offset scales from the data, and the neighbours' outputs projected to its ``mix_width``
+    (:meth:`NodeLSTMSurrogate.with_mix_width`). The checkpoint's scales must fit this run's data: the same data
     hash, or (regenerated data can differ in its last bits, for example on another machine) the scales this
     data gives within 1e-5, over the variants the checkpoint's own run trained on (with or without
     --val-fresh, with its --val-tail). Returns the provenance the new checkpoint records (the file's path and
@@ -228,7 +237,10 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
         if off > 1e-5:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                              f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative)")
-    model.load_state_dict(init.widen(model.config.head_hidden, model.config.stencil, model.config.mix).state_dict())
+    init = init.widen(model.config.head_hidden, model.config.stencil, model.config.mix)
+    if model.config.mix:
+        init = init.with_mix_width(model.config.mix_width)
+    model.load_state_dict(init.state_dict())
     model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
     return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
             "data_hash": meta.get("data_hash")}

@@ -187,18 +187,19 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     assert all(torch.equal(src[k], cp[k]) for k in src)
     cp_arch = json.loads((tmp_path / "cp.json").read_text())["architecture"]
     assert cp_arch["chord_projection"] and cp_arch["reflections"] == []
-    # a wider head, stencil and mix start from the same steps: at lr 0 the same errors, the old weights inside the
-    # new, the second ring's offset scales from the data
+    # a wider head, stencil and mix (its neighbours' outputs projected) start from the same steps: at lr 0 the same
+    # errors, the old weights inside the new, the second ring's offset scales from the data
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
                 "--rest-anchor", "--mirror", "zx", "--head-hidden", "40", "--stencil", "2", "--mix", "1",
-                "--init-from", "ck.pt",
+                "--mix-width", "4", "--init-from", "ck.pt",
                 "--lr", "0", "--epochs", "1", "--out", "wide.pt", "--log-dir", "logs_wide"], tmp_path)
     wide, wide_meta = torch.load(tmp_path / "wide.pt", weights_only=True)["state_dict"], \
         json.loads((tmp_path / "wide.json").read_text())
     assert wide_meta["architecture"]["head_hidden"] == 40 and wide["head.2.weight"].shape == (40, 40)
     assert torch.equal(wide["head.2.weight"][:24, :24], src["head.2.weight"])
     n_in = src["head.0.weight"].shape[1]  # the neighbours' LSTM outputs come after the head's own inputs
-    assert wide_meta["architecture"]["mix"] == 1 and wide["head.0.weight"].shape[1] == n_in + 2 * 48
+    assert wide_meta["architecture"]["mix"] == 1 and wide["head.0.weight"].shape[1] == n_in + 2 * 4
+    assert torch.allclose(wide["mix_proj.weight"] @ wide["mix_proj.weight"].t(), torch.eye(4), atol=1e-6)
     assert torch.equal(wide["head.0.weight"][:24, :n_in], src["head.0.weight"]) and \
         not wide["head.0.weight"][:, n_in:].any()
     assert wide_meta["architecture"]["right2"][0] == 3 and wide["lstm.weight_ih_l0"].shape[1] == 30
@@ -221,6 +222,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
                        (["--head-hidden", "0"], "--hidden and --head-hidden must be >= 1, got 48 and 0"),
+                       (["--mix-width", "8"], "--mix-width must be 0, or in 1..--hidden (48) with --mix 1 or 2"),
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude"),

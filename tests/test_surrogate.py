@@ -643,7 +643,7 @@ def test_a_wider_stencil_sees_the_further_neighbours_and_freezes_as_it_runs(sten
 def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_as_it_runs(mix):
     """``mix=1`` and ``2``: the head also sees the LSTM outputs of the modelled neighbours one (and two) nodes away,
     so with a three-node stencil a node's step moves with the nodes 2 (and 3) away and no further; none across an
-    anchor or beyond a free end; the frozen and program forms equal the eager step with both mirrors; the shipped
+    anchor or beyond a free end; the frozen and program forms equal the eager step with both mirrors; a shipped
     model widened to it steps as before and learns on the added inputs; a bad or narrower mix is an error naming
     it."""
     free = NodeLSTMConfig.chain((0, 1, 2, 3, 4), (1, 2, 3, 4), mix=mix)  # anchor 0, free end 4: "none" is slot 4
@@ -674,7 +674,7 @@ def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_a
         model.freeze_features()
         assert (model(hist, wrench, ref) - eager).abs().max() < 1e-7
         assert (model(hist, wrench, ref, program=True) - eager).abs().max() < 1e-7
-    shipped, _ = load_checkpoint(ROOT / "checkpoints" / "semicircle.pt")
+    shipped, _ = load_checkpoint(ROOT / "checkpoints" / "semicircle_fast.pt")  # a trained model without a mix
     wide = shipped.widen(mix=mix)
     with torch.no_grad():
         assert torch.equal(wide(hist, wrench, ref), shipped(hist, wrench, ref))
@@ -682,6 +682,60 @@ def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_a
     assert wide.head[0].weight.grad[:, shipped.head[0].in_features:].abs().amax(0).min() > 0
     with pytest.raises(ValueError, match="mix must be >= the current mix"):
         wide.widen(mix=mix - 1)
+
+
+def test_a_narrowed_mixing_head_is_the_best_low_rank_approximation_and_exact_at_full_width():
+    """``mix_width``: the neighbours' LSTM outputs reach the head through one shared projection. Narrowing a trained
+    mixing head keeps the best rank-r approximation of its neighbour weights (the Frobenius error is that of the
+    trailing singular values, Eckart-Young), at full width or back to none it steps as before, it keeps the mix's
+    reach, its frozen and program forms equal the eager step, widening its mix adds nothing, and a bad width is an
+    error naming ``mix_width``."""
+    task = get_task("semicircle")
+    with pytest.raises(ValueError, match="mix_width"):
+        task.model_config(hidden=8, mix_width=3)  # no mix to project
+    torch.manual_seed(0)
+    model = NodeLSTMSurrogate(task.model_config(mirror="zx", hidden=8, head_hidden=8, mix=2)).eval()
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    model.disp_scale.fill_(1e-2)
+    model.rel_scale.uniform_(1e-3, 2e-3)
+    model.v_scale.fill_(1e-3)
+    model.a_scale.fill_(1e-4)
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None].expand(2, -1, -1)
+    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
+    wrench = 0.02 * torch.randn(2, 21, 3)
+    full = model.neighbour_weights()  # (4, 8, 8)
+    sv = torch.linalg.svdvals(full.detach().flatten(0, 1))
+    with torch.no_grad():
+        eager = model(hist, wrench, ref)
+        exact = model.with_mix_width(8)
+        assert exact.mix_proj.weight.shape == (8, 8)
+        assert (exact(hist, wrench, ref) - eager).abs().max() < 1e-9
+        assert (exact.with_mix_width(0)(hist, wrench, ref) - eager).abs().max() < 1e-9
+        narrow = model.with_mix_width(3)
+        assert narrow.head[0].in_features == 8 + 16 + 8 + 4 * 3 and narrow.config.mix_width == 3
+        err = (narrow.neighbour_weights() - full).norm()
+        assert float(err) == pytest.approx(float(sv[3:].norm()), rel=1e-4)
+        assert torch.allclose(narrow.mix_proj.weight @ narrow.mix_proj.weight.t(), torch.eye(3), atol=1e-5)
+        moves = (eager - hist[:, -1, model.idx_modeled]).abs().max()
+        assert 0 < (narrow(hist, wrench, ref) - eager).abs().max() < moves
+        step = narrow(hist, wrench, ref)
+        moved = []
+        for node in range(ref.shape[1]):
+            shifted = hist.clone()
+            shifted[:, :, node] += 1e-3
+            moved.append(bool((narrow(shifted, wrench, ref) - step)[:, 5].abs().max() > 0))
+        assert [n for n, m in enumerate(moved) if m] == list(range(3, 10))  # the same seven-node reach
+        narrow.freeze_features()
+        assert (narrow(hist, wrench, ref) - step).abs().max() < 1e-7
+        assert (narrow(hist, wrench, ref, program=True) - step).abs().max() < 1e-7
+        one = NodeLSTMSurrogate(task.model_config(hidden=8, head_hidden=8, mix=1, mix_width=3)).eval()
+        for prm in one.head[-1].parameters():
+            prm.data.normal_(0, 0.1)
+        assert (one.widen(mix=2)(hist, wrench, ref) - one(hist, wrench, ref)).abs().max() < 1e-7
+    for bad in (-1, 9):
+        with pytest.raises(ValueError, match="mix_width must be in 0..hidden"):
+            model.with_mix_width(bad)
 
 
 def test_small_training_run_reduces_the_loss(tiny):

@@ -17,8 +17,9 @@ under the large constant coordinates:
   ``mix=1`` also the LSTM outputs of the node's modelled neighbours, with ``mix=2`` theirs too, after them:
   the head becomes a second local layer, so a node's step sees five or seven nodes with a three-node
   stencil, through two layers rather than one, as a convolution along the rod does; zero for an anchor, a
-  free end's right and beyond them) and a dense head outputs the node's normalised second difference
-  ``a_k``; the next position is
+  free end's right and beyond them; with ``mix_width`` each neighbour's output through a shared linear
+  projection to that many numbers, so the head's first layer costs less) and a dense head outputs the node's
+  normalised second difference ``a_k``; the next position is
   ``p_k(t+1) = 2 p_k(t) - p_k(t-1) + a_k * a_scale_k`` (a Stormer-Verlet-like update, so a zero
   output continues the current motion).
 
@@ -61,6 +62,7 @@ step. Anchors (clamped nodes) are known inputs. A free end has no right neighbou
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass, replace
 
 import torch
@@ -98,6 +100,7 @@ class NodeLSTMConfig:
     left3: tuple[int, ...] = ()    # with a seven-node stencil: the next beyond left2 (() otherwise)
     right3: tuple[int, ...] = ()   # ... the next beyond right2
     mix: int = 0                   # rings of neighbouring modelled nodes whose LSTM outputs the head also sees
+    mix_width: int = 0             # ... each through a shared linear projection to this many numbers (0: none)
 
     @property
     def stencil(self) -> int:
@@ -125,6 +128,9 @@ class NodeLSTMConfig:
         if self.mix not in (0, 1, 2):
             raise ValueError(f"mix (rings of neighbours' LSTM outputs the head sees) must be 0, 1 or 2, "
                              f"got {self.mix!r}")
+        if not 0 <= self.mix_width <= self.hidden or (self.mix_width and not self.mix):
+            raise ValueError(f"mix_width (the projection of the neighbours' LSTM outputs) must be 0, or in 1..hidden "
+                             f"({self.hidden}) with mix >= 1, got {self.mix_width!r} with mix {self.mix}")
         for name in ("hidden", "wrench_hidden", "embedding", "head_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} (layer width) must be >= 1, got {getattr(self, name)}")
@@ -234,7 +240,8 @@ class NodeLSTMSurrogate(nn.Module):
         self.lstm = nn.LSTM(self.n_features, c.hidden, batch_first=True)
         self.wrench = nn.Sequential(nn.Linear(3, c.wrench_hidden), nn.Tanh(), nn.Linear(c.wrench_hidden, c.wrench_hidden))
         self.embed = nn.Embedding(K, c.embedding)
-        n_in = c.hidden * (1 + 2 * c.mix) + c.wrench_hidden + c.embedding  # own LSTM output, force, embedding, mixed
+        n_in = self._head_own_inputs + 2 * c.mix * (c.mix_width or c.hidden)  # and the neighbours' (projected) outputs
+        self.mix_proj = nn.Linear(c.hidden, c.mix_width, bias=False) if c.mix_width else None
         self.head = nn.Sequential(nn.Linear(n_in, c.head_hidden), nn.Tanh(),
                                   nn.Linear(c.head_hidden, c.head_hidden), nn.Tanh(), nn.Linear(c.head_hidden, 3))
         nn.init.zeros_(self.head[-1].weight)
@@ -473,6 +480,44 @@ class NodeLSTMSurrogate(nn.Module):
         wide.load_state_dict(state)
         return wide.train(self.training)
 
+    @property
+    def _head_own_inputs(self) -> int:
+        """The head's inputs before the neighbours' outputs: the node's own LSTM output, force features, embedding."""
+        c = self.config
+        return c.hidden + c.wrench_hidden + c.embedding
+
+    def neighbour_weights(self) -> Tensor:
+        """The head's first-layer weights on each mixed neighbour's whole LSTM output, (2 mix, head_hidden,
+        hidden), slot by slot as :meth:`NodeLSTMConfig.mix_neighbours` (through the projection where
+        ``mix_width``)."""
+        c = self.config
+        w = self.head[0].weight[:, self._head_own_inputs:].reshape(c.head_hidden, 2 * c.mix, -1).transpose(0, 1)
+        return w if self.mix_proj is None else w @ self.mix_proj.weight
+
+    @torch.no_grad()
+    def with_mix_width(self, width: int) -> "NodeLSTMSurrogate":
+        """A copy whose head sees each mixed neighbour's LSTM output through a shared linear projection to
+        ``width`` numbers (0: the whole output), its weights the best rank-``width`` approximation (least squares)
+        of this model's weights on the neighbours' outputs taken together (:meth:`neighbour_weights`): the
+        projection their leading right singular vectors. Exact (to round-off) where ``width`` is 0 or at least this
+        model's (``hidden`` where it has none), so ``--init-from`` can narrow or keep a trained mixing head."""
+        c = self.config
+        if c.mix == 0 or width < 0 or width > c.hidden:
+            raise ValueError(f"mix_width must be in 0..hidden ({c.hidden}) on a model with mix >= 1, got {width!r} "
+                             f"with mix {c.mix}")
+        if width == c.mix_width:
+            return copy.deepcopy(self)
+        out = NodeLSTMSurrogate(replace(c, mix_width=width)).to(self.length_scale.device)
+        state = {k: v for k, v in self.state_dict().items() if not k.startswith(("head.0.", "mix_proj."))}
+        full, n0 = self.neighbour_weights(), self._head_own_inputs  # (2 mix, head_hidden, hidden)
+        if width:
+            proj = torch.linalg.svd(full.flatten(0, 1), full_matrices=False)[2][:width]  # (width, hidden)
+            state["mix_proj.weight"], full = proj, full @ proj.t()
+        state["head.0.weight"] = torch.cat([self.head[0].weight[:, :n0], full.transpose(0, 1).flatten(1)], 1)
+        state["head.0.bias"] = self.head[0].bias
+        out.load_state_dict(state)
+        return out.train(self.training)
+
     def train(self, mode: bool = True):
         if mode:
             self.unfreeze_features()
@@ -558,8 +603,9 @@ class NodeLSTMSurrogate(nn.Module):
         emb = self.embed.weight.expand(B, K, -1)
         h = h.reshape(B, K, -1)
         parts = [h, wf, emb]
-        if self.idx_mix is not None:  # the neighbours' LSTM outputs, zero for none
-            parts.append(nn.functional.pad(h, (0, 0, 0, 1))[:, self.idx_mix].reshape(B, K, -1))
+        if self.idx_mix is not None:  # the neighbours' (projected) LSTM outputs, zero for none
+            n = h if self.mix_proj is None else self.mix_proj(h)
+            parts.append(nn.functional.pad(n, (0, 0, 0, 1))[:, self.idx_mix].reshape(B, K, -1))
         return mlp(self.head, torch.cat(parts, -1)) * self.a_scale
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
