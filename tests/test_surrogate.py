@@ -639,6 +639,17 @@ def test_a_wider_stencil_sees_the_further_neighbours_and_freezes_as_it_runs(sten
         assert (model(hist, wrench, ref.expand(2, -1, -1), program=True) - eager).abs().max() < 1e-7
 
 
+def moving_nodes(model, hist, wrench, ref, slot: int) -> list[int]:
+    """The tracked nodes whose history, moved by 1 mm, changes modelled node ``slot``'s step."""
+    step = model(hist, wrench, ref)
+    moved = []
+    for node in range(ref.shape[1]):
+        shifted = hist.clone()
+        shifted[:, :, node] += 1e-3
+        moved.append(bool((model(shifted, wrench, ref) - step)[:, slot].abs().max() > 0))
+    return [n for n, m in enumerate(moved) if m]
+
+
 @pytest.mark.parametrize("mix", [1, 2])
 def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_as_it_runs(mix):
     """``mix=1`` and ``2``: the head also sees the LSTM outputs of the modelled neighbours one (and two) nodes away,
@@ -665,12 +676,7 @@ def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_a
     wrench = 0.02 * torch.randn(2, 21, 3)
     with torch.no_grad():
         eager = model(hist, wrench, ref)
-        moved = []
-        for node in range(ref.shape[1]):
-            shifted = hist.clone()
-            shifted[:, :, node] += 1e-3
-            moved.append(bool((model(shifted, wrench, ref) - eager)[:, 5].abs().max() > 0))  # modelled 5: tracked 6
-        assert [n for n, m in enumerate(moved) if m] == list(range(5 - mix, 8 + mix))
+        assert moving_nodes(model, hist, wrench, ref, 5) == list(range(5 - mix, 8 + mix))  # modelled 5: tracked 6
         model.freeze_features()
         assert (model(hist, wrench, ref) - eager).abs().max() < 1e-7
         assert (model(hist, wrench, ref, program=True) - eager).abs().max() < 1e-7
@@ -720,12 +726,7 @@ def test_a_narrowed_mixing_head_is_the_best_low_rank_approximation_and_exact_at_
         moves = (eager - hist[:, -1, model.idx_modeled]).abs().max()
         assert 0 < (narrow(hist, wrench, ref) - eager).abs().max() < moves
         step = narrow(hist, wrench, ref)
-        moved = []
-        for node in range(ref.shape[1]):
-            shifted = hist.clone()
-            shifted[:, :, node] += 1e-3
-            moved.append(bool((narrow(shifted, wrench, ref) - step)[:, 5].abs().max() > 0))
-        assert [n for n, m in enumerate(moved) if m] == list(range(3, 10))  # the same seven-node reach
+        assert moving_nodes(narrow, hist, wrench, ref, 5) == list(range(3, 10))  # the same seven-node reach
         narrow.freeze_features()
         assert (narrow(hist, wrench, ref) - step).abs().max() < 1e-7
         assert (narrow(hist, wrench, ref, program=True) - step).abs().max() < 1e-7
@@ -734,8 +735,10 @@ def test_a_narrowed_mixing_head_is_the_best_low_rank_approximation_and_exact_at_
             prm.data.normal_(0, 0.1)
         assert (one.widen(mix=2)(hist, wrench, ref) - one(hist, wrench, ref)).abs().max() < 1e-7
     for bad in (-1, 9):
-        with pytest.raises(ValueError, match="mix_width must be in 0..hidden"):
+        with pytest.raises(ValueError, match=r"mix_width .* must be 0, or in 1..hidden \(8\)"):
             model.with_mix_width(bad)
+    with pytest.raises(ValueError, match="no mixing head"):
+        NodeLSTMSurrogate(task.model_config(hidden=8)).with_mix_width(4)
 
 
 def test_small_training_run_reduces_the_loss(tiny):

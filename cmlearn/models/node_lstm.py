@@ -502,12 +502,12 @@ class NodeLSTMSurrogate(nn.Module):
         projection their leading right singular vectors. Exact (to round-off) where ``width`` is 0 or at least this
         model's (``hidden`` where it has none), so ``--init-from`` can narrow or keep a trained mixing head."""
         c = self.config
-        if c.mix == 0 or width < 0 or width > c.hidden:
-            raise ValueError(f"mix_width must be in 0..hidden ({c.hidden}) on a model with mix >= 1, got {width!r} "
-                             f"with mix {c.mix}")
+        if c.mix == 0:
+            raise ValueError("with_mix_width: the model has no mixing head (mix 0) whose inputs to project")
+        config = replace(c, mix_width=width)  # checks the width
         if width == c.mix_width:
             return copy.deepcopy(self)
-        out = NodeLSTMSurrogate(replace(c, mix_width=width)).to(self.length_scale.device)
+        out = NodeLSTMSurrogate(config).to(self.length_scale.device)
         state = {k: v for k, v in self.state_dict().items() if not k.startswith(("head.0.", "mix_proj."))}
         full, n0 = self.neighbour_weights(), self._head_own_inputs  # (2 mix, head_hidden, hidden)
         if width:
