@@ -650,6 +650,23 @@ def moving_nodes(model, hist, wrench, ref, slot: int) -> list[int]:
     return [n for n, m in enumerate(moved) if m]
 
 
+def mixing_model(task, **cfg):
+    """A small mirrored Simulation III model (hidden 8, seeded) with an output layer and scales that make every
+    input count, and two random histories near the rest shape: ``(model, hist, wrench, ref)``."""
+    torch.manual_seed(0)
+    model = NodeLSTMSurrogate(task.model_config(mirror="zx", hidden=8, head_hidden=8, **cfg)).eval()
+    for prm in model.head[-1].parameters():
+        prm.data.normal_(0, 0.1)
+    model.rel_scale.uniform_(1e-3, 2e-3)
+    model.disp_scale.fill_(1e-2)
+    model.v_scale.fill_(1e-3)
+    model.a_scale.fill_(1e-4)
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None].expand(2, -1, -1)
+    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
+    wrench = 0.02 * torch.randn(2, 21, 3)
+    return model, hist, wrench, ref
+
+
 @pytest.mark.parametrize("mix", [1, 2])
 def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_as_it_runs(mix):
     """``mix=1`` and ``2``: the head also sees the LSTM outputs of the modelled neighbours one (and two) nodes away,
@@ -661,19 +678,8 @@ def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_a
     assert free.mix_neighbours() == [(4, 0, 1, 2), (1, 2, 3, 4), (4, 4, 0, 1), (2, 3, 4, 4)][:2 * mix]
     with pytest.raises(ValueError, match="mix .* must be 0, 1 or 2"):
         replace(free, mix=3)
-    task = get_task("semicircle")
-    torch.manual_seed(0)
-    model = NodeLSTMSurrogate(task.model_config(mirror="zx", hidden=8, head_hidden=8, mix=mix)).eval()
+    model, hist, wrench, ref = mixing_model(get_task("semicircle"), mix=mix)
     assert model.head[0].in_features == 8 * (1 + 2 * mix) + 16 + 8
-    for prm in model.head[-1].parameters():
-        prm.data.normal_(0, 0.1)
-    model.rel_scale.uniform_(1e-3, 2e-3)
-    model.disp_scale.fill_(1e-2)
-    model.v_scale.fill_(1e-3)
-    model.a_scale.fill_(1e-4)
-    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None].expand(2, -1, -1)
-    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
-    wrench = 0.02 * torch.randn(2, 21, 3)
     with torch.no_grad():
         eager = model(hist, wrench, ref)
         assert moving_nodes(model, hist, wrench, ref, 5) == list(range(5 - mix, 8 + mix))  # modelled 5: tracked 6
@@ -699,17 +705,7 @@ def test_a_narrowed_mixing_head_is_the_best_low_rank_approximation_and_exact_at_
     task = get_task("semicircle")
     with pytest.raises(ValueError, match="mix_width"):
         task.model_config(hidden=8, mix_width=3)  # no mix to project
-    torch.manual_seed(0)
-    model = NodeLSTMSurrogate(task.model_config(mirror="zx", hidden=8, head_hidden=8, mix=2)).eval()
-    for prm in model.head[-1].parameters():
-        prm.data.normal_(0, 0.1)
-    model.disp_scale.fill_(1e-2)
-    model.rel_scale.uniform_(1e-3, 2e-3)
-    model.v_scale.fill_(1e-3)
-    model.a_scale.fill_(1e-4)
-    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)].float()[None].expand(2, -1, -1)
-    hist = ref[:, None] + 0.01 * torch.randn(2, 3, *ref.shape[1:])
-    wrench = 0.02 * torch.randn(2, 21, 3)
+    model, hist, wrench, ref = mixing_model(task, mix=2)
     full = model.neighbour_weights()  # (4, 8, 8)
     sv = torch.linalg.svdvals(full.detach().flatten(0, 1))
     with torch.no_grad():
