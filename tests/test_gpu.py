@@ -200,16 +200,20 @@ def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():
     assert swing > 1e-4 and float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
 
 
-def test_train_surrogate_quick_on_gpu(tmp_path):
+# the magnetic rod selects its epochs in closed loop: its wrench model runs on the GPU too (before 2026-11-29 the
+# node forces came back on the CPU and the run stopped at its first validation)
+@pytest.mark.parametrize("task, flags", [("semicircle", ["--rest-anchor", "--mirror", "zx"]),
+                                         ("magnetic_rod", ["--mix", "2", "--mix-width", "8"])])
+def test_train_surrogate_quick_on_gpu(tmp_path, task, flags):
     pytest.importorskip("lightning")
     sys.path.insert(0, str(ROOT / "scripts"))
     import train_surrogate
     from cmlearn.surrogate import Surrogate
 
-    out = tmp_path / "semi_gpu.pt"
+    out = tmp_path / f"{task}_gpu.pt"
     acc = "gpu" if CUDA.type == "cuda" else "cpu"
-    meta = train_surrogate.main(["--task", "semicircle", "--quick", "--accelerator", acc, "--rest-anchor",
-                                 "--mirror", "zx", "--data-dir", str(tmp_path / "data"), "--out", str(out),
+    meta = train_surrogate.main(["--task", task, "--quick", "--accelerator", acc, *flags,
+                                 "--data-dir", str(tmp_path / "data"), "--out", str(out),
                                  "--log-dir", str(tmp_path / "logs")])
     assert out.exists() and meta["args"]["accelerator"] == acc
     assert "diverged" not in meta["check"]

@@ -285,6 +285,23 @@ def test_closed_loop_training_rollout_computes_the_wrench_from_its_own_frames(tm
         closed_loop_inputs(TASK, {**d, "meta": {**d["meta"], "seed": 40}})
 
 
+def test_closed_loop_wrench_stays_on_the_device_of_its_frames():
+    """A run on a GPU (``--accelerator gpu``) selects its epochs in closed loop with frames and field samples on
+    the GPU: the node forces come back on that device (here the meta device, shapes only; found on an H200, where
+    they came back on the CPU), the same shape as on the CPU."""
+    from cmlearn.data.magnetic import field_samples
+    from cmlearn.surrogate.magnetic import closed_loop_wrench, initial_points
+    scene = TASK.base_scene()
+    pts = initial_points(TASK, scene).double()[None]
+    I = torch.tensor([[2.0, -1.0, 0.5, -2.0, 1.0, 1.5]], dtype=torch.float64)
+    samples = field_samples(TASK, scene.rod, eMNS(), pts, I)
+    fn = closed_loop_wrench(TASK)
+    cpu = fn(pts, samples)
+    meta = fn(pts.to("meta"), samples.to("meta"))
+    assert meta.device.type == "meta" and meta.shape == cpu.shape == (1, len(TASK.modeled), 3)
+    assert float(cpu.abs().max()) > 1e-6
+
+
 def test_profiles_and_rod_validate_their_input():
     with pytest.raises(ValueError, match="moves"):
         MinJerkCurrents(torch.zeros(2, 6), (0.0,), (0.1, 0.1))

@@ -19,7 +19,7 @@ __all__ = ["RolloutWindows", "node_wrench", "split_ranges"]
 
 def node_wrench(wrench: Tensor, wrench_nodes, modeled) -> Tensor:
     """Scatter the stored forces (..., T-1, n_wrench, 3) onto the modelled nodes (..., T-1, K, 3)."""
-    out = torch.zeros(*wrench.shape[:-2], len(modeled), 3, dtype=wrench.dtype)
+    out = wrench.new_zeros(*wrench.shape[:-2], len(modeled), 3)  # on the wrench's device (closed loop on a GPU)
     slot = {n: i for i, n in enumerate(modeled)}
     for j, n in enumerate(wrench_nodes):
         if n not in slot:
