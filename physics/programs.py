@@ -42,6 +42,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
         out = fn(*args)
         tensor_out.append(isinstance(out, Tensor))
         return (out,) if tensor_out[-1] else tuple(out)
+    # one tensor passed as two inputs would be traced as one input, read where either is: trace distinct copies
+    inputs = [x.clone() if any(x is y for y in inputs[:i]) else x for i, x in enumerate(inputs)]
     extra = {}
     if direct:
         from torch._inductor.decomposition import select_decomp_table

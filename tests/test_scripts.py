@@ -100,9 +100,10 @@ def test_bench_surrogate_quick(tmp_path, task):
     assert res["surrogate_step_hz"] > 0 and res["speedup_per_simulated_second"] > 1
     lo, mid, hi = res["speedup_per_simulated_second_rounds"]  # interleaved rounds: the ratio is their mean
     assert lo <= mid == res["speedup_per_simulated_second"] <= hi and res["rounds"] == 3
+    if task != "magnetic_rod":  # the rollout step on the scene, the LSTM states carried (the rod: its closed loop)
+        assert res["surrogate_step_hz_rollout"] > 0 and res["speedup_per_simulated_second_rollout"] > 1
     if task == "semicircle":  # the printed push keeps one of the four mirror images
-        assert res["scene_symmetry_axes"] == [0, 2] and res["surrogate_step_hz_symmetric"] > 0
-        assert res["speedup_per_simulated_second_symmetric"] > 1
+        assert res["scene_symmetry_axes"] == [0, 2]
     else:
         assert "scene_symmetry_axes" not in res
     if task == "magnetic_rod":  # its closed loop, in the tabulated field and in the exact one
@@ -635,14 +636,15 @@ def test_report_loop_swing_against_the_lgvi(tmp_path):
 
 
 def test_bench_surrogate_program_quick(tmp_path):
-    """The current program form of the mirrored Simulation III step and the three it replaced compile and equal the
-    eager step to round-off; the timings are there (not compared: a shared CI machine)."""
+    """The current program form of the mirrored Simulation III step, the three it replaced and the rollout's carried
+    step compile and equal the eager step to round-off; the timings are there (not compared: a shared CI machine)."""
     res = run_script([str(ROOT / "scripts/bench/surrogate_program.py"), "--quick",
                       "--checkpoint", str(ROOT / "checkpoints/semicircle.pt")], tmp_path)
     (images, fig), = res["images"].items()
     assert images == "1" and fig["axes"] == [2, 0] and res["gemm_templates"] is False
-    assert min(fig["current_us"], fig["torch_us"], fig["current_wrapped_us"], fig["input_product_first_us"]) > 0
-    assert len(fig["max_abs_vs_eager_m"]) == 4 and max(fig["max_abs_vs_eager_m"].values()) < 1e-7
+    assert min(fig["current_us"], fig["torch_us"], fig["current_wrapped_us"], fig["input_product_first_us"],
+               fig["carried_us"]) > 0
+    assert len(fig["max_abs_vs_eager_m"]) == 5 and max(fig["max_abs_vs_eager_m"].values()) < 1e-7
 
 
 def test_training_fit_report_splits_windows_by_what_was_trained_on(tmp_path):

@@ -474,6 +474,62 @@ def test_a_symmetric_scene_needs_one_image_per_coset_and_gets_the_same_rollout()
     assert float((compiled - rolled).abs().max()) < 1e-4 * swing
 
 
+def test_the_rollout_carries_the_lstm_states_and_steps_as_the_window_does():
+    """The engine's rollout (``Stepper``) runs each frame through the LSTM once and carries its states: from any
+    history it steps the window's rollout (float64: to 1e-12 of the swing) for a mirrored, anchored model with a
+    mixing head, with every image and with the scene's symmetric ones, and for a five-node stencil over a longer
+    window; compiled too (float32); an anchored rod at rest stays exactly at rest, eager and compiled; a changed
+    image set, a wrongly shaped force or history is refused."""
+    task = get_task("semicircle")
+    torch.manual_seed(6)
+    gen = torch.Generator().manual_seed(7)
+    ref = task.base_scene().initial_configuration()["p"][list(task.tracked)][None]  # float64
+    K, mid = len(task.modeled), task.modeled.index(50)
+    push = torch.zeros(1, 12, K, 3, dtype=torch.float64)
+    push[..., mid, 1] = -5.0  # in the plane, on the middle node: symmetric under both mirrors
+    for kw in (dict(mirror="zx", rest_anchor=True, mix=2, mix_width=4), dict(eta=4, stencil=2)):
+        model = live_head(NodeLSTMSurrogate(task.model_config(hidden=16, **kw))).double()
+        model.a_scale.fill_(1e-3)
+        W = model.config.eta + 1
+        hist = ref[:, None] + 1e-3 * torch.randn(1, W, *ref.shape[1:], generator=gen, dtype=torch.float64)
+        f = 0.3 * torch.randn(1, 12, K, 3, generator=gen, dtype=torch.float64)
+        engine = Surrogate(model, {"task": "semicircle"})
+        cases = [((), hist, f)] + ([((0, 2), ref[:, None].expand(-1, W, -1, -1), push)] if kw.get("mirror") else [])
+        for axes, h0, force in cases:
+            want = model.use_symmetry(()).rollout(h0, force, ref)
+            with engine.symmetric(axes):
+                st = engine.stepper(h0, ref)
+                got = torch.stack([st.step(force[:, k]) for k in range(12)], 1)
+            swing = float((want - h0[:, -1:]).abs().max())
+            assert swing > 1e-5 and float((got - want).abs().max()) < 1e-12 * swing, (kw, axes)
+    # float32, eager and compiled (the first model: mirrored, anchored, mixing head)
+    model = live_head(NodeLSTMSurrogate(task.model_config(hidden=16, mirror="zx", rest_anchor=True, mix=2,
+                                                          mix_width=4)))
+    model.a_scale.fill_(1e-3)
+    engine, ref32 = Surrogate(model, {"task": "semicircle"}), ref.float()
+    hist32, f32 = (ref32[:, None] + 1e-3 * torch.randn(1, 3, *ref.shape[1:], generator=gen)), 0.3 * torch.randn(1, 12, K, 3, generator=gen)
+    rolls = {}
+    for mode in ("eager", "compiled"):
+        if mode == "compiled":
+            engine.compile(gemm_templates=False)
+        st = engine.stepper(hist32, ref32)
+        rolls[mode] = torch.stack([st.step(f32[:, k]) for k in range(12)], 1)
+        still = engine.stepper(ref32[:, None].expand(-1, 3, -1, -1), ref32)
+        rest = torch.stack([still.step(torch.zeros(1, K, 3)) for _ in range(20)], 1)
+        assert torch.equal(rest, ref32[:, None].expand_as(rest)), mode  # exactly at rest
+    swing = float((rolls["eager"] - hist32[:, -1:]).abs().max())
+    assert swing > 1e-4 and float((rolls["compiled"] - rolls["eager"]).abs().max()) < 1e-4 * swing
+    assert float((model.rollout(hist32, f32, ref32) - rolls["eager"]).abs().max()) < 1e-4 * swing
+    with engine.symmetric((0,)), pytest.raises(RuntimeError, match="make a new stepper"):
+        st.step(f32[:, 0])
+    with pytest.raises(ValueError, match="wrench must be"):
+        st.step(torch.zeros(1, 3, 3))
+    with pytest.raises(ValueError, match="hist must be"):
+        engine.stepper(hist32[:, :2], ref32)
+    strided = f32[:, 0].transpose(1, 2).contiguous().transpose(1, 2)  # the force in another layout
+    assert torch.equal(engine.stepper(hist32, ref32).step(strided), engine.stepper(hist32, ref32).step(f32[:, 0]))
+
+
 def chords(x):
     return (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1)
 

@@ -279,10 +279,15 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("mirror_perm", torch.tensor(perms, dtype=torch.long), persistent=False)  # (G, n_tracked)
         self.register_buffer("mirror_perm_modeled", torch.tensor([[slot[p[n]] for n in c.modeled] for p in perms],
                                                                  dtype=torch.long), persistent=False)  # (G, K)
-        for name in ("_feature_matrix", "_feature_rows", "_feature_blocks"):  # freeze_features; buffers, so that
-            for part in ("", "_group"):                                        # .to(device) moves them too
+        # freeze_features; buffers, so that .to(device) moves them too (images in use; every image)
+        for name in ("_feature_matrix", "_feature_rows", "_feature_blocks", "_carry_rows", "_carry_blocks"):
+            for part in ("", "_group"):
                 self.register_buffer(name + part, None, persistent=False)     # (images in use; every image)
         self.register_buffer("_lstm_stacked", None, persistent=False)  # freeze_features: (F + hidden, 4 hidden)
+        self.register_buffer("_gate_scale", torch.tensor([1.0, 1.0, 2.0, 1.0]).repeat_interleave(c.hidden),
+                             persistent=False)  # the LSTM's gates i, f, g, o: g's tanh through a sigmoid
+        for name in ("_carry_wih", "_carry_whh", "_carry_bias"):  # freeze_features: _carried_weights()
+            self.register_buffer(name, None, persistent=False)
         self.use_symmetry(())  # the images in use (all of G) and the stabiliser projected on (none)
 
     def invariant_axes(self, frames: Tensor, wrench: Tensor, rtol: float = 1e-6) -> tuple[int, ...]:
@@ -387,21 +392,39 @@ class NodeLSTMSurrogate(nn.Module):
         matrix (built by applying :meth:`features` to the unit basis) and, for compiled programs
         (``forward(..., program=True)``), per node, since node ``k``'s features depend only on its own
         and its neighbours' positions: the matrix from those ``(eta + 2) * 3 * (1 + 2 stencil)`` numbers to its
-        ``(eta + 1) * F`` features (eagerly one matrix product is faster, compiled the blocks).
+        ``(eta + 1) * F`` features (eagerly one matrix product is faster, compiled the blocks). The same per-node
+        blocks of a carried step's newest frame (:meth:`carried_step`, from the last two frames and the reference).
         Every mirror image's matrices are kept; those of the images in use (:meth:`use_symmetry`) are
         taken from them. The LSTM's stacked weights (:meth:`_lstm_last`) are kept too, so that a compiled
         program holds them as one constant (a product with weights computed in the program has no C++ GEMM
         template). Call again after changing the scales; :meth:`unfreeze_features` (or ``train()``)
         returns to the explicit computation."""
-        W, N, K, F = self.config.eta + 1, self.config.n_tracked, self.idx_modeled.numel(), self.n_features
-        D = (W + 1) * N * 3
-        basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, W + 1, N, 3)
-        dense = self.features(basis[:, :W], basis[:, W]).reshape(D, K, W * F)
+        W, K, F = self.config.eta + 1, self.idx_modeled.numel(), self.n_features
+        self._feature_matrix_group, self._feature_rows_group, self._feature_blocks_group = self._node_blocks(
+            lambda x: self.features(x[:, :W], x[:, W]).reshape(-1, K, W * F), W + 1)
+        _, self._carry_rows_group, self._carry_blocks_group = self._node_blocks(
+            lambda x: self._newest_features(x[:, :2], x[:, 2]), 3)
+        self._lstm_stacked = self._stacked_lstm_weights().contiguous()  # a constant of the program, not an op in it
+        self._carry_wih, self._carry_whh, self._carry_bias = (t.contiguous() for t in self._carried_weights())
+        self._select_features()
+        return self
+
+    def _node_blocks(self, fn, n_frames: int) -> tuple[Tensor, Tensor, Tensor]:
+        """A map ``fn`` linear in ``n_frames`` frames (D, n_frames, n_tracked, 3) -> (D, K, O) that reads only each
+        node's own and its neighbours' positions, frozen for every mirror image ``g`` (``g x = sign * x[flip]``, folded
+        into the rows): ``(dense, rows, blocks)``, the dense matrix (D, G, K * O), and per node the rows of the
+        flattened input it reads (G, K, n_frames * 3 * (1 + 2 stencil)) and its matrix from them (G, K, rows, O);
+        the identity first."""
+        N = self.config.n_tracked
+        D = n_frames * N * 3
+        basis = torch.eye(D, dtype=self.a_scale.dtype, device=self.a_scale.device).reshape(D, n_frames, N, 3)
+        dense = fn(basis)
+        K, O = dense.shape[1:]
         nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 1 + 2 s)
-        frame = torch.arange(W + 1, device=nodes.device)[:, None, None] * N
-        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (W+1, K, 1 + 2 s, 3)
+        frame = torch.arange(n_frames, device=nodes.device)[:, None, None] * N
+        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (frames, K, 1 + 2 s, 3)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
-        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, W * F))
+        blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, O))
         first = torch.ones_like(rows, dtype=torch.bool)  # a neighbour that is the node itself (free end) counts once
         for i in range(1, rows.shape[1]):
             first[:, i] = (rows[:, :i] != rows[:, i:i + 1]).all(1)
@@ -409,18 +432,12 @@ class NodeLSTMSurrogate(nn.Module):
         kept = torch.zeros(K, D, dtype=torch.bool, device=rows.device).scatter_(1, rows, True)
         if bool(dense.transpose(0, 1)[~kept].any()):
             raise RuntimeError("Input Layer I reads beyond a node's neighbours; freeze_features cannot split it")
-        # each group element's features: g x = sign * x[flip] (flip an involution), folded into the rows; the
-        # identity first
         sign = self.mirror_sign.repeat(1, D // 3)  # (G, D)
         flip = (((frame[None, :, :, 0] + self.mirror_perm[:, None]) * 3)[..., None]
                 + torch.arange(3, device=nodes.device)).flatten(1)  # (G, D)
         dense = dense.reshape(D, -1)
-        self._feature_matrix_group = torch.stack([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1)  # (D, G, K * W * F)
-        self._feature_rows_group = torch.stack([f[rows] for f in flip])  # (G, K, (W + 1) * 3 * nodes)
-        self._feature_blocks_group = torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign])  # (G, K, (W + 1) * 3 * nodes, W * F)
-        self._lstm_stacked = self._stacked_lstm_weights().contiguous()  # a constant of the program, not an op in it
-        self._select_features()
-        return self
+        return (torch.stack([s[:, None] * dense[f] for s, f in zip(sign, flip)], 1),
+                torch.stack([f[rows] for f in flip]), torch.stack([s[rows].unsqueeze(-1) * blocks for s in sign]))
 
     def _stacked_lstm_weights(self) -> Tensor:
         """The LSTM's input and recurrent weights stacked, (F + hidden, 4 hidden): the right factor of
@@ -441,10 +458,13 @@ class NodeLSTMSurrogate(nn.Module):
             pick = lambda t, dim: t.index_select(dim, g)  # noqa: E731
         self._feature_matrix = pick(self._feature_matrix_group, 1).flatten(1)  # (D, G * K * W * F), image-major
         self._feature_rows, self._feature_blocks = pick(self._feature_rows_group, 0), pick(self._feature_blocks_group, 0)
+        self._carry_rows, self._carry_blocks = pick(self._carry_rows_group, 0), pick(self._carry_blocks_group, 0)
 
     def unfreeze_features(self) -> None:
-        self._feature_matrix = self._feature_rows = self._feature_blocks = None
+        self._feature_matrix = self._feature_rows = self._feature_blocks = self._carry_rows = self._carry_blocks = None
         self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
+        self._carry_rows_group = self._carry_blocks_group = None
+        self._carry_wih = self._carry_whh = self._carry_bias = None
         self._lstm_stacked = None
 
     def widen(self, head_hidden: int | None = None, stencil: int | None = None,
@@ -562,19 +582,22 @@ class NodeLSTMSurrogate(nn.Module):
         """Input Layer I of every symmetry image ``g`` in use of the inputs, as (G * B * K, W, F) LSTM
         sequences (image-major; frozen, the reflections are folded into the feature matrices)."""
         B, W = hist.shape[:2]
-        G, K = self.img_sign.shape[0], self.idx_modeled.numel()
         M = self._feature_matrix
         if M is None:
-            if G > 1:
-                hist = (hist[:, :, self.img_perm] * self.img_sign[:, None]).movedim(2, 0).flatten(0, 1)
-                ref = self._mirror_images(ref)
-            return self.features(hist, ref).reshape(G * B * K, W, self.n_features)
+            return self.features(*self._frame_images(hist, ref)).reshape(-1, W, self.n_features)
         x = torch.cat([hist, ref[:, None]], 1).reshape(B, -1)
         if program:
             f = torch.einsum("bgki,gkio->gbko", x[:, self._feature_rows], self._feature_blocks)
         else:
-            f = (x @ M).reshape(B, G, -1).transpose(0, 1)
-        return f.reshape(G * B * K, W, self.n_features)
+            f = (x @ M).reshape(B, self.img_sign.shape[0], -1).transpose(0, 1)
+        return f.reshape(-1, W, self.n_features)
+
+    def _frame_images(self, hist: Tensor, ref: Tensor) -> tuple[Tensor, Tensor]:
+        """Every symmetry image in use of frames (B, W, n_tracked, 3) and the reference (B, n_tracked, 3), as
+        (G * B, W, n_tracked, 3) and (G * B, n_tracked, 3), image-major."""
+        if self.img_sign.shape[0] == 1:
+            return hist, ref
+        return (hist[:, :, self.img_perm] * self.img_sign[:, None]).movedim(2, 0).flatten(0, 1), self._mirror_images(ref)
 
     def _mirror_images(self, x: Tensor) -> Tensor:
         """Every symmetry image in use ``g x`` of frames (B, n_tracked, 3), as (G * B, n_tracked, 3),
@@ -585,20 +608,26 @@ class NodeLSTMSurrogate(nn.Module):
         """The head's second difference (B, K, 3) in metres, symmetrised over the mirror group, before the
         rest anchor."""
         f = self._input_features(hist, ref, program)
-        if self.mirror_sign.shape[0] == 1:
-            return self._head(f, wrench, program)
-        S, pk = self.img_sign[:, None], self.img_perm_modeled
-        a = self._head(f, (wrench[:, pk] * S).movedim(1, 0).flatten(0, 1), program)
-        return self._mean_back(a, hist.shape[0])
-
-    def _head(self, f: Tensor, wrench: Tensor, program: bool) -> Tensor:
-        """Second difference (B, K, 3) in metres from the Input Layer I sequences (B * K, W, F) and forces
-        (B, K, 3): the LSTM, the force layers, the node embedding and the dense head."""
-        B, K = wrench.shape[:2]
         if program:
-            h, mlp = self._lstm_last(f, program=True), _program_mlp
+            h = self._lstm_last(f, program=True)
         else:
-            h, mlp = self._lstm_last(f) if self.training else self.lstm(f)[0][:, -1], nn.Module.__call__
+            h = self._lstm_last(f) if self.training else self.lstm(f)[0][:, -1]
+        return self._image_heads(h, wrench, program)
+
+    def _image_heads(self, h: Tensor, wrench: Tensor, program: bool) -> Tensor:
+        """The second difference (B, K, 3) in metres, symmetrised over the mirror group, from every image's LSTM
+        outputs (G * B * K, hidden), image-major, and the forces (B, K, 3)."""
+        if self.mirror_sign.shape[0] == 1:
+            return self._head(h, wrench, program)
+        S, pk = self.img_sign[:, None], self.img_perm_modeled
+        a = self._head(h, (wrench[:, pk] * S).movedim(1, 0).flatten(0, 1), program)
+        return self._mean_back(a, wrench.shape[0])
+
+    def _head(self, h: Tensor, wrench: Tensor, program: bool) -> Tensor:
+        """Second difference (B, K, 3) in metres from the LSTM's last outputs (B * K, hidden) and the forces
+        (B, K, 3): the force layers, the node embedding and the dense head."""
+        B, K = wrench.shape[:2]
+        mlp = _program_mlp if program else nn.Module.__call__
         wf = mlp(self.wrench, wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
         h = h.reshape(B, K, -1)
@@ -629,6 +658,52 @@ class NodeLSTMSurrogate(nn.Module):
             a = a - (self.rest_accel(ref, program) if rest is None else rest)
         pk = hist[:, -1, self.idx_modeled]
         return 2 * pk - hist[:, -2, self.idx_modeled] + a
+
+    def _newest_features(self, frames: Tensor, ref: Tensor) -> Tensor:
+        """Input Layer I (B, K, F) of the newest of two frames (B, 2, n_tracked, 3), as a window's LSTM sees it at
+        any position but the first (where its step is zero, :meth:`features`)."""
+        return self.features(frames, ref)[:, :, 1]
+
+    def _carried_weights(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The LSTM's input and recurrent weights, transposed, and its summed biases, (F, 4 hidden), (hidden, 4 hidden),
+        (4 hidden,), with the cell gate's doubled, so that one sigmoid serves all four gates (the cell gate's tanh(x)
+        as 2 sigmoid(2x) - 1): :meth:`carried_step`'s (frozen as constants by :meth:`freeze_features`: scaled inside a
+        compiled program, they cost it a seventh of its time)."""
+        lstm, scale = self.lstm, self._gate_scale
+        return lstm.weight_ih_l0.t() * scale, lstm.weight_hh_l0.t() * scale, (lstm.bias_ih_l0 + lstm.bias_hh_l0) * scale
+
+    def carried_step(self, h: Tensor, c: Tensor, frames: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor,
+                     program: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:meth:`forward` with each window's LSTM states carried from the step before, for a rollout at inference
+        (the images in use fixed throughout; :class:`cmlearn.surrogate.Stepper` drives it). A window's LSTM state at
+        a position depends only on the frames up to it, so each step runs its newest frame once at each of the
+        ``eta + 1`` positions (its Input Layer I once, one recurrent product for all positions) instead of running
+        the whole window: the same step to float round-off in fewer operations.
+
+        ``h, c`` (eta + 1, G * B * K, hidden), position-major, image-major within: the states after the last frame
+        but one at each position of a window (the last position unused); ``frames`` (B, 2, n_tracked, 3) the last two
+        frames; ``rest`` (B, K, 3) what is subtracted from the head's output (zero, or a rest anchor's output at rest
+        in this same arithmetic). Returns the next positions (B, K, 3), the second difference (B, K, 3) they add, and
+        the states after the last frame."""
+        B, E = frames.shape[0], self.config.eta
+        if self._carry_blocks is not None:
+            x = torch.cat([frames, ref[:, None]], 1).reshape(B, -1)
+            f = torch.einsum("bgki,gkio->gbko", x[:, self._carry_rows], self._carry_blocks)
+        else:
+            f = self._newest_features(*self._frame_images(frames, ref))
+        f = f.reshape(1, -1, self.n_features)  # (1, G * B * K, F)
+        sigmoid, tanh = (_program_sigmoid, _program_tanh) if program else (torch.sigmoid, torch.tanh)
+        w_ih, w_hh, bias = self._carried_weights() if self._carry_wih is None else \
+            (self._carry_wih, self._carry_whh, self._carry_bias)
+        p = f @ w_ih + bias
+        # at a window's first position its step (features 9-11) is zero: its product taken out, as a sum over 3
+        first = p - (f[..., 9:12, None] * w_ih[9:12]).sum(-2)
+        s = sigmoid(torch.cat([first, p + h[:E] @ w_hh]))  # (eta + 1, G * B * K, 4 hidden)
+        i, fg, gg, o = s.chunk(4, -1)
+        c = i * (2 * gg - 1) + fg * nn.functional.pad(c[:E], (0, 0, 0, 0, 1, 0))  # a window starts at zero
+        h = o * tanh(c)
+        a = self._image_heads(h[E], wrench, program) - rest
+        return 2 * frames[:, 1, self.idx_modeled] - frames[:, 0, self.idx_modeled] + a, a, h, c
 
     def project_chords(self, frame: Tensor, ref: Tensor, iters: int = 2) -> Tensor:
         """``frame`` (B, n_tracked, 3) with the modelled nodes moved, anchors fixed, so that every chord between

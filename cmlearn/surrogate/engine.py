@@ -9,12 +9,15 @@ decomposed into matrix products and fused gates, a few us of call overhead; its 
 few seconds, is not part of any step latency figure). A mirrored model (``reflections``) on a scene
 that is itself mirror symmetric (its initial shape and every force, e.g. Simulation III's printed push)
 runs its rollout with one image per coset of the scene's symmetries (``run_scene``; by hand:
-``with engine.symmetric(axes):``), the same step in fewer operations. A task with its own rollout (the
+``with engine.symmetric(axes):``), the same step in fewer operations. A rollout steps through
+:meth:`Surrogate.stepper`, which carries each node's LSTM states from step to step (each frame runs through
+the LSTM once: :meth:`~cmlearn.models.NodeLSTMSurrogate.carried_step`). A task with its own rollout (the
 magnetic rod's closed loop, :mod:`cmlearn.surrogate.magnetic`) compiles that whole loop step through
 :meth:`Surrogate.program`.
 """
 from __future__ import annotations
 
+import functools
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -28,7 +31,7 @@ from physics.programs import compile_program
 
 from .checkpoint import CheckpointError, load_checkpoint
 
-__all__ = ["Surrogate", "SurrogateDivergence", "check_rollout", "load_checkpoints"]
+__all__ = ["Stepper", "Surrogate", "SurrogateDivergence", "check_rollout", "load_checkpoints"]
 
 
 def median_latency(call, n: int, warmup: int) -> float:
@@ -199,40 +202,105 @@ class Surrogate:
         p0 = self._initial_points(scene)
         t0 = time.perf_counter()
         wrench = self.scene_wrench(scene, n)
-        frames = [p0] * (self.eta + 1)
-        idx = self.model.idx_modeled
-        ref = p0[None]
         out = [p0]
         with self.symmetric(self._symmetry(p0, wrench)):
+            st = self.stepper(p0[None, None].expand(1, self.eta + 1, -1, -1), p0[None])
             for k in range(n):
-                pk = self.step(torch.stack(frames[-(self.eta + 1):])[None], wrench[k][None], ref)[0]
-                nxt = frames[-1].index_copy(0, idx, pk)
-                frames.append(nxt)
-                out.append(nxt)
+                out.append(st.step(wrench[k][None])[0])
         wall = time.perf_counter() - t0
         out = torch.stack(out)
         check_rollout(out, self.task, scene.rod.length)
         return out, wall
 
+    def stepper(self, hist: Tensor, ref: Tensor) -> "Stepper":
+        """A rollout from the history (B, eta+1, n_tracked, 3) and the reference shape (B, n_tracked, 3) that carries
+        the LSTM states from step to step (:class:`Stepper`): the same steps as :meth:`step`, in fewer operations.
+        It steps with the mirror images in use when it is made (:meth:`symmetric`)."""
+        return Stepper(self, hist, ref)
+
     @torch.no_grad()
     def step_latency(self, n: int = 2000, warmup: int = 50, scene=None) -> float:
-        """Seconds per batch-1 step (median of ``n`` timed steps): on a synthetic shape with every mirror
-        image, or, given a ``scene``, from its initial shape and first force with the images its
-        symmetries leave (as :meth:`run_scene` steps it)."""
+        """Seconds per batch-1 step (median of ``n`` timed steps). Without a ``scene``, :meth:`step` on a synthetic
+        shape with every mirror image (any input). Given a ``scene``, its rollout as :meth:`run_scene` steps it
+        (:meth:`stepper`, the images its symmetries leave): from its initial shape with its own forces, starting
+        again at its end."""
         K, N, W = self.model.idx_modeled.numel(), self.model.config.n_tracked, self.eta + 1
-        axes = ()
         if scene is None:
             hist = torch.zeros(1, W, N, 3)
             hist[..., 2] = torch.linspace(0, 0.1, N)
-            wrench = torch.zeros(1, K, 3)
-        else:
-            p0 = self._initial_points(scene)
-            hist = p0[None, None].expand(1, W, -1, -1).contiguous()
-            wrench = self.scene_wrench(scene, int(round(scene.duration / self.task.delta)))
-            axes, wrench = self._symmetry(p0, wrench), wrench[:1]
-        ref = hist[:, 0]
-        with self.symmetric(axes):
+            wrench, ref = torch.zeros(1, K, 3), hist[:, 0]
             return median_latency(lambda: self.step(hist, wrench, ref), n, warmup)
+        p0 = self._initial_points(scene)
+        wrench = self.scene_wrench(scene, int(round(scene.duration / self.task.delta)))
+        times = []
+        with self.symmetric(self._symmetry(p0, wrench)):
+            for k in range(warmup + n):
+                j = k % wrench.shape[0]
+                if j == 0:
+                    st = self.stepper(p0[None, None].expand(1, W, -1, -1), p0[None])
+                t0 = time.perf_counter()
+                st.step(wrench[j][None])
+                times.append(time.perf_counter() - t0)
+        return sorted(times[warmup:])[n // 2]
+
+
+class Stepper:
+    """A surrogate rollout that carries each modelled node's LSTM states from one step to the next
+    (:meth:`~cmlearn.models.NodeLSTMSurrogate.carried_step`; made by :meth:`Surrogate.stepper`). ``step(wrench)``
+    gives the next frame (B, n_tracked, 3): the modelled nodes predicted, the anchors where the last frame has them
+    (clamped), and with ``chord_projection`` every tracked chord given its reference length, as :meth:`Surrogate.step`.
+    Made after :meth:`Surrogate.compile`, it runs one compiled program a step (the frame's assembly included).
+
+    Its states start from the history's frames, and a ``rest_anchor`` model's output at rest is taken at the
+    states' fixed point at rest, both through the step itself, so that a rod at rest stays there exactly, eager or
+    compiled (in a window's arithmetic, :meth:`Surrogate.step`'s, the carried step agrees with it to round-off)."""
+
+    def __init__(self, engine: Surrogate, hist: Tensor, ref: Tensor):
+        model, E = engine.model, engine.eta
+        if hist.ndim != 4 or hist.shape[1] != E + 1 or hist.shape[2:] != (model.config.n_tracked, 3):
+            raise ValueError(f"hist must be (B, eta + 1 = {E + 1}, n_tracked = {model.config.n_tracked}, 3), got "
+                             f"{tuple(hist.shape)}")
+        self.model, self.ref, self.axes = model, ref, model.symmetry_axes
+        B, K = hist.shape[0], model.idx_modeled.numel()
+        h, c = (hist.new_zeros(E + 1, model.img_sign.shape[0] * B * K, model.config.hidden) for _ in range(2))
+        zero, self.rest = hist.new_zeros(B, K, 3), hist.new_zeros(B, K, 3)
+        self._wrench_shape, self._wrench_stride = zero.shape, zero.stride()
+
+        def step(h, c, frames, wrench, ref, rest, program: bool = False):
+            pk, a, h, c = model.carried_step(h, c, frames, wrench, ref, rest, program=program)
+            last = frames[:, 1]
+            nxt = last.index_copy(1, model.idx_modeled, pk)
+            return torch.stack([last, nxt], 1), nxt, a, h, c
+
+        def make(program: bool):  # a program tracks no gradients; the eager step must not either
+            return functools.partial(step, program=True) if program else torch.no_grad()(step)
+        frames = hist[:, [0, 0]]
+        self._step = engine.program(("carried", self.axes), make, [h, c, frames, zero, ref, self.rest])
+        if model.config.rest_anchor:  # a window at rest is through every position after eta + 1 steps from any state
+            still = ref if model.rest_frame is None else model.rest_frame.to(ref.dtype).expand_as(ref)
+            pair, hr, cr = torch.stack([still, still], 1), h, c
+            for _ in range(E + 1):
+                a, hr, cr = self._step(hr, cr, pair, zero, ref, self.rest)[2:]
+            self.rest = a
+        for j in range(E):  # the states after the history's last frame but one, in the step's own arithmetic
+            h, c = self._step(h, c, hist[:, [max(j - 1, 0), j]], zero, ref, self.rest)[3:]
+        self.h, self.c, self.frames = h, c, hist[:, -2:].contiguous()
+
+    def step(self, wrench: Tensor) -> Tensor:
+        """The next frame (B, n_tracked, 3) for the node forces (B, K, 3) over the step."""
+        model = self.model
+        if model.symmetry_axes != self.axes:
+            raise RuntimeError(f"the stepper was made with the mirror images of axes {self.axes} in use, but the model "
+                               f"now uses those of {model.symmetry_axes}: make a new stepper")
+        if wrench.shape != self._wrench_shape:
+            raise ValueError(f"wrench must be (B, K, 3) = {tuple(self._wrench_shape)}, got {tuple(wrench.shape)}")
+        if wrench.stride() != self._wrench_stride:  # the program's layout
+            wrench = torch.empty(self._wrench_shape, dtype=wrench.dtype, device=wrench.device).copy_(wrench)
+        self.frames, nxt, _, self.h, self.c = self._step(self.h, self.c, self.frames, wrench, self.ref, self.rest)
+        if model.config.chord_projection:
+            nxt = model.project_chords(nxt, self.ref)
+            self.frames = torch.stack([self.frames[:, 0], nxt], 1)
+        return nxt
 
 
 def load_checkpoints(paths, magnetic: bool = False) -> tuple[dict, SurrogateTask]:

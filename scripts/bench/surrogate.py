@@ -13,10 +13,12 @@ whole duration on Simulation III, whose held-out force acts only in its second h
 whose Newton iterations cost more where the rod moves. A ratio is the mean over the rounds of each round's LGVI
 block against the surrogate timed beside it (``*_rounds``: min, mean, max), so that a machine whose speed drifts
 (these shared CPUs drift by up to 2x over minutes) slows both sides of it alike; a surrogate rate is the median
-of its rounds, the LGVI's the mean over the window. A mirrored model is timed twice: with every mirror image (any input: the
-``surrogate_step_*`` keys) and with the images the scene's own symmetries leave, as ``run_scene`` steps
-that scene (the ``*_symmetric`` keys, with ``scene_symmetry_axes``; Simulation III's printed push keeps
-one of four). The magnetic rod runs in closed loop (each step also computes the magnets'
+of its rounds, the LGVI's the mean over the window. The surrogate is timed twice: its step on any input
+(:meth:`Surrogate.step`, every mirror image of a mirrored model; the ``surrogate_step_*`` keys) and its rollout
+step on the scene as ``run_scene`` steps it (the ``*_rollout`` keys): the LSTM states carried from step to step
+(:class:`cmlearn.surrogate.Stepper`), along the scene's own forces, and for a mirrored model with the images the
+scene's symmetries leave (``scene_symmetry_axes``; Simulation III's printed push keeps one of four, its held-out
+force two). The magnetic rod runs in closed loop (each step also computes the magnets'
 wrench from its own last frame and the currents, in the coils' field tabulated over the workspace): its
 wall time per simulated second is the closed loop's, the currents' evaluation included
 (``surrogate_closed_loop_step_hz``; ``*_latency_us``: a step alone, currents given;
@@ -109,8 +111,8 @@ def main(argv=None):
     res = {"scene_symmetry_axes": list(axes)} if mirrored else {}
     per_sim = lambda step_s: step_s / task.delta  # noqa: E731 - seconds per simulated second of a step's latency
     sur = {"eager": lambda: per_sim(engine.step_latency(n=n_block, warmup=5))}
-    if mirrored:
-        sur["eager_symmetric"] = lambda: per_sim(engine.step_latency(n=n_block, warmup=5, scene=scene))
+    if not task.custom:
+        sur["eager_rollout"] = lambda: per_sim(engine.step_latency(n=n_block, warmup=5, scene=scene))
     compiled = None
     if a.compile:
         compiled = Surrogate.load(path, task=task.name)
@@ -119,9 +121,9 @@ def main(argv=None):
         compiled.step_latency(n=5, warmup=1)
         res["compile_s"] = time.perf_counter() - t0
         sur["compiled"] = lambda: per_sim(compiled.step_latency(n=4 * n_block, warmup=20))
-        if mirrored:
+        if not task.custom:
             compiled.step_latency(n=5, warmup=1, scene=scene)  # its own program
-            sur["compiled_symmetric"] = lambda: per_sim(compiled.step_latency(n=4 * n_block, warmup=20, scene=scene))
+            sur["compiled_rollout"] = lambda: per_sim(compiled.step_latency(n=4 * n_block, warmup=20, scene=scene))
     lgvi = {}
     if task.custom:
         # the magnetic rod runs in closed loop: each step also computes the magnets' wrench from the model's own
@@ -153,8 +155,8 @@ def main(argv=None):
             key = "surrogate_" + k + "_step_hz"
             res[key.replace("_compiled_step_hz", "_step_hz_compiled")] = 1 / (median(v) * task.delta)
         else:
-            name = {"eager": "", "eager_symmetric": "_symmetric", "compiled": "_compiled",
-                    "compiled_symmetric": "_symmetric_compiled"}[k]
+            name = {"eager": "", "eager_rollout": "_rollout", "compiled": "_compiled",
+                    "compiled_rollout": "_rollout_compiled"}[k]
             res["surrogate_step_hz" + name] = 1 / (median(v) * task.delta)
             res["surrogate_step_us" + name] = median(v) * task.delta * 1e6
 
@@ -166,15 +168,14 @@ def main(argv=None):
         res[key + "_rounds"] = [min(r), mean(r), max(r)]
     base = "closed_loop" if task.custom else "eager"
     ratio("speedup_per_simulated_second", base)
-    if mirrored:
-        ratio("speedup_per_simulated_second_symmetric", "eager_symmetric")
+    if not task.custom:
+        ratio("speedup_per_simulated_second_rollout", "eager_rollout")
     if a.compile:
         ratio("speedup_per_simulated_second_compiled", "closed_loop_compiled" if task.custom else "compiled")
         if not task.custom:
             ratio("speedup_per_simulated_second_both_compiled", "compiled", "compiled")
-            if mirrored:
-                ratio("speedup_per_simulated_second_symmetric_compiled", "compiled_symmetric")
-                ratio("speedup_per_simulated_second_symmetric_both_compiled", "compiled_symmetric", "compiled")
+            ratio("speedup_per_simulated_second_rollout_compiled", "compiled_rollout")
+            ratio("speedup_per_simulated_second_rollout_both_compiled", "compiled_rollout", "compiled")
     if task.custom:
         res.update({"surrogate_closed_loop_step_us": 1e6 / res["surrogate_closed_loop_step_hz"],
                     "surrogate_closed_loop_latency_us": latency(engine, short, n=n_block) * 1e6})
@@ -214,14 +215,16 @@ def main(argv=None):
                   f" -> {res['speedup_per_simulated_second_compiled']:.0f}x per simulated second (rounds "
                   f"{span('speedup_per_simulated_second_compiled')}); against the LGVI compiled too "
                   f"({res['lgvi_step_hz_compiled']:.0f} steps/s): {res['speedup_per_simulated_second_both_compiled']:.0f}x"))
-    if mirrored:
-        print(f"  with the scene's symmetries (axes {axes}: {engine.model.mirror_sign.shape[0] >> len(axes)} of "
-              f"{engine.model.mirror_sign.shape[0]} mirror images): {res['surrogate_step_hz_symmetric']:.0f} steps/s "
-              f"-> {res['speedup_per_simulated_second_symmetric']:.0f}x" + (
-                  f"; compiled {res['surrogate_step_hz_symmetric_compiled']:.0f} steps/s -> "
-                  f"{res['speedup_per_simulated_second_symmetric_compiled']:.0f}x (rounds "
-                  f"{span('speedup_per_simulated_second_symmetric_compiled')}; both compiled: "
-                  f"{res['speedup_per_simulated_second_symmetric_both_compiled']:.0f}x)" if a.compile else ""))
+    if not task.custom:
+        images = f" ({engine.model.mirror_sign.shape[0] >> len(axes)} of {engine.model.mirror_sign.shape[0]} mirror " \
+            f"images, the scene's symmetry axes {axes})" if mirrored else ""
+        print(f"  its rollout step on the scene, the LSTM states carried{images}: {res['surrogate_step_hz_rollout']:.0f} "
+              f"steps/s -> {res['speedup_per_simulated_second_rollout']:.0f}x" + (
+                  f"; compiled {res['surrogate_step_hz_rollout_compiled']:.0f} steps/s "
+                  f"({res['surrogate_step_us_rollout_compiled']:.0f} us) -> "
+                  f"{res['speedup_per_simulated_second_rollout_compiled']:.0f}x (rounds "
+                  f"{span('speedup_per_simulated_second_rollout_compiled')}; both compiled: "
+                  f"{res['speedup_per_simulated_second_rollout_both_compiled']:.0f}x)" if a.compile else ""))
     print(f"  free-running error over {dur} s of {scene.name}: {check['max_err_mm']:.2f} mm")
     print(json.dumps(res))
     return res

@@ -14,6 +14,10 @@ and the last output against both weight matrices. Each peer differs from it in o
   before 2026-11-29, later);
 * ``input_product_first``: the LSTM's input product for all frames first, then the recurrent products (the same).
 
+Beside them, ``carried``: the rollout's step (``NodeLSTMSurrogate.carried_step``, as ``cmlearn.surrogate.Stepper``
+runs it since 2026-11-30), which takes the LSTM states of the step before and runs only the newest frame through the
+LSTM, at every position of the window at once.
+
 All are compiled for a batch-1 step of Simulation III's held-out scene with one, two and four mirror images in use
 (``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the fastest of ``--rounds`` means of
 ``--calls`` calls, the programs timed in turn, so that a machine whose speed drifts (these shared CPUs drift by up
@@ -107,19 +111,27 @@ def main(argv=None):
             want = model(hist, wrench, ref, rest=rest)
         progs = {k: compile_form(model, form, args, not a.quick, direct, stacked)
                  for k, (form, direct, stacked) in VARIANTS.items()}
+        st = engine.stepper(hist, ref)  # the rollout's states after hist[:, -2], and its rest output
+        cargs = [st.h, st.c, st.frames, wrench, ref, st.rest]
+        carried = compile_program(lambda *c: model.carried_step(*c, program=True), cargs, gemm_templates=not a.quick,
+                                  direct=True)
         dev = {k: float((p(*args) - want).abs().max()) for k, p in progs.items()}
-        us = interleaved_us({k: (lambda p: lambda: p(*args))(p) for k, p in progs.items()}, rounds, n)
+        dev["carried"] = float((carried(*cargs)[0] - want).abs().max())
+        calls = {k: (lambda p: lambda: p(*args))(p) for k, p in progs.items()}
+        us = interleaved_us({**calls, "carried": lambda: carried(*cargs)}, rounds, n)
         images = model.img_sign.shape[0]
         res["images"][str(images)] = {"axes": list(axes), "current_us": us["current"], "torch_us": us["torch"],
                                       "current_wrapped_us": us["current_wrapped"],
                                       "input_product_first_us": us["input_product_first"],
+                                      "carried_us": us["carried"],
                                       "time_ratio": us["current"] / us["torch"],
                                       "direct_call_saves_us": us["current_wrapped"] - us["current"],
                                       "max_abs_vs_eager_m": dev}
         print(f"{images} of {model.mirror_sign.shape[0]} images: current {us['current']:.1f} us, torch's "
               f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); the current form "
               f"called through the wrappers {us['current_wrapped']:.1f} us, with the LSTM's input product first "
-              f"{us['input_product_first']:.1f} us; max |compiled - eager| "
+              f"{us['input_product_first']:.1f} us; the rollout's carried step {us['carried']:.1f} us; "
+              f"max |compiled - eager| "
               + " / ".join(f"{v:.1e}" for v in dev.values()) + " m", flush=True)
     model.use_symmetry(())
     print(json.dumps(res))
