@@ -667,8 +667,9 @@ class NodeLSTMSurrogate(nn.Module):
     def _carried_weights(self) -> tuple[Tensor, Tensor, Tensor]:
         """The LSTM's input and recurrent weights, transposed, and its summed biases, (F, 4 hidden), (hidden, 4 hidden),
         (4 hidden,), with the cell gate's doubled, so that one sigmoid serves all four gates (the cell gate's tanh(x)
-        as 2 sigmoid(2x) - 1): :meth:`carried_step`'s (frozen as constants by :meth:`freeze_features`: scaled inside a
-        compiled program, they cost it a seventh of its time)."""
+        as 2 sigmoid(2x) - 1): :meth:`carried_step`'s, frozen as constants by :meth:`freeze_features` (with a sigmoid
+        and a tanh per gate, or the scales multiplied inside the program, the compiled two-image Simulation III step
+        took 86-87 us instead of 75)."""
         lstm, scale = self.lstm, self._gate_scale
         return lstm.weight_ih_l0.t() * scale, lstm.weight_hh_l0.t() * scale, (lstm.bias_ih_l0 + lstm.bias_hh_l0) * scale
 
