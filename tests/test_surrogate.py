@@ -188,10 +188,10 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
 
 
 def test_program_activations_and_head_equal_torch_including_extremes():
-    """The compiled step's forms (exp-based sigmoid and tanh, a <= 4-output layer as a summed product) are
+    """The compiled step's forms (exp-based sigmoid and tanh, a <= 8-output layer as a summed product) are
     torch's functions to float round-off, saturate exactly at +-inf and far out instead of giving NaN, and
-    the model's head in that form equals its nn.Sequential."""
-    from cmlearn.models.node_lstm import _program_mlp, _program_sigmoid, _program_tanh
+    the model's head and a mixing head's bias-free projection in that form equal their nn modules."""
+    from cmlearn.models.node_lstm import _program_linear, _program_mlp, _program_sigmoid, _program_tanh
     x = torch.cat([torch.linspace(-30, 30, 2001), torch.tensor([-1e4, -100.0, 0.0, 100.0, 1e4, -math.inf, math.inf])])
     assert torch.allclose(_program_sigmoid(x), torch.sigmoid(x), rtol=0, atol=2e-7)
     assert torch.allclose(_program_tanh(x), torch.tanh(x), rtol=0, atol=5e-7)
@@ -206,6 +206,8 @@ def test_program_activations_and_head_equal_torch_including_extremes():
     with torch.no_grad():
         assert torch.allclose(_program_mlp(model.head, h), model.head(h), atol=1e-6)
         assert torch.allclose(_program_mlp(model.wrench, h[..., :3]), model.wrench(h[..., :3]), atol=1e-6)
+        proj = torch.nn.Linear(h.shape[-1], 8, bias=False)
+        assert torch.allclose(_program_linear(proj, h), proj(h), atol=1e-6)
     with pytest.raises(TypeError, match="ReLU"):
         _program_mlp(torch.nn.Sequential(torch.nn.ReLU()), h)
 

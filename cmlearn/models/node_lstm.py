@@ -201,7 +201,7 @@ def _program_sigmoid(x: Tensor) -> Tensor:
     """``sigmoid`` as ``1 / (1 + exp(-x))`` (exact at +-inf: ``exp`` overflows to inf, the result to 0), for
     compiled programs only (no gradients: ``exp`` overflows in the backward). Inductor's vectorised C++
     ``exp`` is cheaper than its ``tanh`` (Sleef's): with these in the LSTM and the head, and the
-    head's last layer as in :func:`_program_mlp`, the compiled Simulation III step's program takes a quarter
+    head's last layer as in :func:`_program_linear`, the compiled Simulation III step's program takes a quarter
     less time with one, two and four mirror images (``python scripts/bench/surrogate_program.py``)."""
     return 1 / (1 + torch.exp(-x))
 
@@ -212,18 +212,25 @@ def _program_tanh(x: Tensor) -> Tensor:
     return 2 * _program_sigmoid(2 * x) - 1
 
 
+def _program_linear(layer: nn.Linear, x: Tensor) -> Tensor:
+    """``layer(x)`` in the form that compiles best: a layer of at most 8 outputs as a product summed over its
+    inputs (fused into what follows), not a matrix product: inductor's micro-GEMM took 7 us for the head's 42 x 64 -> 3
+    layer, and the mixing head's 42 x 32 -> 8 projection took 3 us more that way in the two-image Simulation III
+    step."""
+    if layer.out_features > 8:
+        return layer(x)
+    y = (x.unsqueeze(-2) * layer.weight).sum(-1)
+    return y if layer.bias is None else y + layer.bias
+
+
 def _program_mlp(seq: nn.Sequential, x: Tensor) -> Tensor:
     """``seq(x)`` for a stack of ``nn.Linear`` and ``nn.Tanh`` in the form that compiles best: the tanh as
-    :func:`_program_tanh`, and a linear layer of at most 4 outputs as a product summed over its inputs
-    (fused into what follows), not a matrix product: inductor's micro-GEMM took 7 us for the head's
-    42 x 64 -> 3 layer."""
+    :func:`_program_tanh`, the linear layers as :func:`_program_linear`."""
     for layer in seq:
         if isinstance(layer, nn.Tanh):
             x = _program_tanh(x)
-        elif isinstance(layer, nn.Linear) and layer.out_features <= 4:
-            x = (x.unsqueeze(-2) * layer.weight).sum(-1) + layer.bias
         elif isinstance(layer, nn.Linear):
-            x = layer(x)
+            x = _program_linear(layer, x)
         else:
             raise TypeError(f"_program_mlp: no program form for {type(layer).__name__}")
     return x
@@ -627,13 +634,13 @@ class NodeLSTMSurrogate(nn.Module):
         """Second difference (B, K, 3) in metres from the LSTM's last outputs (B * K, hidden) and the forces
         (B, K, 3): the force layers, the node embedding and the dense head."""
         B, K = wrench.shape[:2]
-        mlp = _program_mlp if program else nn.Module.__call__
+        mlp, linear = (_program_mlp, _program_linear) if program else (nn.Module.__call__, nn.Module.__call__)
         wf = mlp(self.wrench, wrench / self.f_scale)
         emb = self.embed.weight.expand(B, K, -1)
         h = h.reshape(B, K, -1)
         parts = [h, wf, emb]
         if self.idx_mix is not None:  # the neighbours' (projected) LSTM outputs, zero for none
-            n = h if self.mix_proj is None else self.mix_proj(h)
+            n = h if self.mix_proj is None else linear(self.mix_proj, h)
             parts.append(nn.functional.pad(n, (0, 0, 0, 1))[:, self.idx_mix].reshape(B, K, -1))
         return mlp(self.head, torch.cat(parts, -1)) * self.a_scale
 

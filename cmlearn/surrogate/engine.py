@@ -276,7 +276,7 @@ class Stepper:
             return functools.partial(step, program=True) if program else torch.no_grad()(step)
         frames = hist[:, [0, 0]]
         self._step = engine.program(("carried", self.axes), make, [h, c, frames, zero, ref, self.rest])
-        if model.config.rest_anchor:  # a window at rest is through every position after eta + 1 steps from any state
+        if model.config.rest_anchor:  # after eta + 1 steps at rest, from any states, every position has seen rest only
             still = ref if model.rest_frame is None else model.rest_frame.to(ref.dtype).expand_as(ref)
             pair, hr, cr = torch.stack([still, still], 1), h, c
             for _ in range(E + 1):

@@ -39,8 +39,8 @@ from cmlearn.surrogate import Surrogate
 from physics.programs import compile_program
 
 FORMS = {
-    "current": (node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp),
-    "torch": (torch.sigmoid, torch.tanh, lambda seq, x: seq(x)),
+    "current": (node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp, node_lstm._program_linear),
+    "torch": (torch.sigmoid, torch.tanh, lambda seq, x: seq(x), lambda layer, x: layer(x)),
 }
 
 
@@ -52,14 +52,17 @@ VARIANTS = {"current": ("current", True, True), "torch": ("torch", True, True),
 def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True, stacked: bool = True):
     """The model's program-form step compiled with the activations and layers of ``form``, called directly or
     through the wrappers of ``torch._inductor.compile``, its LSTM's products ``stacked`` per frame or not."""
-    saved = node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp
-    node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = FORMS[form]
+    names = ("_program_sigmoid", "_program_tanh", "_program_mlp", "_program_linear")
+    saved = [getattr(node_lstm, n) for n in names]
+    for n, f in zip(names, FORMS[form]):
+        setattr(node_lstm, n, f)
     model._lstm_last = functools.partial(type(model)._lstm_last, model, stacked=stacked)
     try:
         return compile_program(lambda h, w, r, *rest: model(h, w, r, program=True, rest=rest[0] if rest else None),
                                args, gemm_templates=gemm_templates, direct=direct)
     finally:
-        node_lstm._program_sigmoid, node_lstm._program_tanh, node_lstm._program_mlp = saved
+        for n, f in zip(names, saved):
+            setattr(node_lstm, n, f)
         del model._lstm_last
 
 
