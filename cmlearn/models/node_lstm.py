@@ -71,6 +71,9 @@ from torch import Tensor, nn
 __all__ = ["NodeLSTMConfig", "NodeLSTMSurrogate"]
 
 
+STEP_FEATURES = slice(9, 12)  # Input Layer I's step (p(tau) - p(tau - 1)) / v: after the displacement and the offsets
+
+
 def n_features(stencil: int) -> int:
     """Input Layer I's width per frame: the displacement and the step (6), and the changes of the offsets and the
     reference offsets of each ring of neighbours (12 a ring)."""
@@ -289,7 +292,7 @@ class NodeLSTMSurrogate(nn.Module):
         # freeze_features; buffers, so that .to(device) moves them too (images in use; every image)
         for name in ("_feature_matrix", "_feature_rows", "_feature_blocks", "_carry_rows", "_carry_blocks"):
             for part in ("", "_group"):
-                self.register_buffer(name + part, None, persistent=False)     # (images in use; every image)
+                self.register_buffer(name + part, None, persistent=False)
         self.register_buffer("_lstm_stacked", None, persistent=False)  # freeze_features: (F + hidden, 4 hidden)
         self.register_buffer("_gate_scale", torch.tensor([1.0, 1.0, 2.0, 1.0]).repeat_interleave(c.hidden),
                              persistent=False)  # the LSTM's gates i, f, g, o: g's tanh through a sigmoid
@@ -391,7 +394,7 @@ class NodeLSTMSurrogate(nn.Module):
         step = torch.cat([torch.zeros_like(pk[:, :1]), pk[:, 1:] - pk[:, :-1]], 1) / self.v_scale
         geo = (rel0 / self.length_scale).expand(-1, hist.shape[1], -1, -1)
         outer = [t[..., r:r + 6] for r in range(6, drel.shape[-1], 6) for t in (drel, geo)]
-        return torch.cat([disp, drel[..., :6], step, geo[..., :6]] + outer, -1).transpose(1, 2)
+        return torch.cat([disp, drel[..., :6], step, geo[..., :6]] + outer, -1).transpose(1, 2)  # step: STEP_FEATURES
 
     @torch.no_grad()
     def freeze_features(self) -> "NodeLSTMSurrogate":
@@ -704,8 +707,8 @@ class NodeLSTMSurrogate(nn.Module):
         w_ih, w_hh, bias = self._carried_weights() if self._carry_wih is None else \
             (self._carry_wih, self._carry_whh, self._carry_bias)
         p = f @ w_ih + bias
-        # at a window's first position its step (features 9-11) is zero: its product taken out, as a sum over 3
-        first = p - (f[..., 9:12, None] * w_ih[9:12]).sum(-2)
+        # at a window's first position its step (STEP_FEATURES) is zero: its product taken out, as a sum over 3
+        first = p - (f[..., STEP_FEATURES, None] * w_ih[STEP_FEATURES]).sum(-2)
         s = sigmoid(torch.cat([first, p + h[:E] @ w_hh]))  # (eta + 1, G * B * K, 4 hidden)
         i, fg, gg, o = s.chunk(4, -1)
         c = i * (2 * gg - 1) + fg * nn.functional.pad(c[:E], (0, 0, 0, 0, 1, 0))  # a window starts at zero
