@@ -509,7 +509,8 @@ def test_the_rollout_carries_the_lstm_states_and_steps_as_the_window_does():
                                                           mix_width=4)))
     model.a_scale.fill_(1e-3)
     engine, ref32 = Surrogate(model, {"task": "semicircle"}), ref.float()
-    hist32, f32 = (ref32[:, None] + 1e-3 * torch.randn(1, 3, *ref.shape[1:], generator=gen)), 0.3 * torch.randn(1, 12, K, 3, generator=gen)
+    hist32 = ref32[:, None] + 1e-3 * torch.randn(1, 3, *ref.shape[1:], generator=gen)
+    f32 = 0.3 * torch.randn(1, 12, K, 3, generator=gen)
     rolls = {}
     for mode in ("eager", "compiled"):
         if mode == "compiled":

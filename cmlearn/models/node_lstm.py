@@ -432,7 +432,8 @@ class NodeLSTMSurrogate(nn.Module):
         K, O = dense.shape[1:]
         nodes = torch.stack([self.idx_modeled] + [getattr(self, f"idx_{r}") for r in self._rings], -1)  # (K, 1 + 2 s)
         frame = torch.arange(n_frames, device=nodes.device)[:, None, None] * N
-        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)  # (frames, K, 1 + 2 s, 3)
+        # (frames, K, 1 + 2 s, 3)
+        rows = ((frame + nodes[None]) * 3).unsqueeze(-1) + torch.arange(3, device=nodes.device)
         rows = rows.permute(1, 0, 2, 3).reshape(K, -1)
         blocks = dense.transpose(0, 1).gather(1, rows.unsqueeze(-1).expand(-1, -1, O))
         first = torch.ones_like(rows, dtype=torch.bool)  # a neighbour that is the node itself (free end) counts once
@@ -607,7 +608,8 @@ class NodeLSTMSurrogate(nn.Module):
         (G * B, W, n_tracked, 3) and (G * B, n_tracked, 3), image-major."""
         if self.img_sign.shape[0] == 1:
             return hist, ref
-        return (hist[:, :, self.img_perm] * self.img_sign[:, None]).movedim(2, 0).flatten(0, 1), self._mirror_images(ref)
+        images = (hist[:, :, self.img_perm] * self.img_sign[:, None]).movedim(2, 0).flatten(0, 1)
+        return images, self._mirror_images(ref)
 
     def _mirror_images(self, x: Tensor) -> Tensor:
         """Every symmetry image in use ``g x`` of frames (B, n_tracked, 3), as (G * B, n_tracked, 3),
