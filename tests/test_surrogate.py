@@ -16,6 +16,7 @@ import torch
 from cmlearn.data import generate_dataset, get_task, load_dataset
 from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
+from cmlearn.models.node_lstm import _as_shifts
 from cmlearn.surrogate import CheckpointError, Surrogate, load_checkpoint, save_checkpoint, surrogate_checkpoints
 from cmlearn.surrogate.evaluate import free_running, from_rest, one_step, short_check
 
@@ -735,10 +736,13 @@ def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_a
     it."""
     free = NodeLSTMConfig.chain((0, 1, 2, 3, 4), (1, 2, 3, 4), mix=mix)  # anchor 0, free end 4: "none" is slot 4
     assert free.mix_neighbours() == [(4, 0, 1, 2), (1, 2, 3, 4), (4, 4, 0, 1), (2, 3, 4, 4)][:2 * mix]
+    # a chain's neighbours as shifts (slices in the program form); a branch's (the magnetic rod's) gathered
+    assert _as_shifts(free.mix_neighbours(), 4) == (-1, 1, -2, 2)[:2 * mix]
+    assert _as_shifts([(4, 0, 1, 1)], 4) is None
     with pytest.raises(ValueError, match="mix .* must be 0, 1 or 2"):
         replace(free, mix=3)
     model, hist, wrench, ref = mixing_model(get_task("semicircle"), mix=mix)
-    assert model.head[0].in_features == 8 * (1 + 2 * mix) + 16 + 8
+    assert model.head[0].in_features == 8 * (1 + 2 * mix) + 16 + 8 and model._mix_shifts is not None
     with torch.no_grad():
         eager = model(hist, wrench, ref)
         assert moving_nodes(model, hist, wrench, ref, 5) == list(range(5 - mix, 8 + mix))  # modelled 5: tracked 6

@@ -200,6 +200,19 @@ class NodeLSTMConfig:
         return asdict(self)
 
 
+def _as_shifts(mixed: list[tuple[int, ...]], K: int) -> tuple[int, ...] | None:
+    """The mixed neighbours' slots (:meth:`NodeLSTMConfig.mix_neighbours`) as shifts along the modelled nodes, slot
+    ``k + d`` for node ``k`` and none beyond either end, where they are that (a chain of modelled nodes); else
+    ``None``."""
+    shifts = []
+    for slots in mixed:
+        d = next((s - k for k, s in enumerate(slots) if s < K), 0)
+        if any(s != (k + d if 0 <= k + d < K else K) for k, s in enumerate(slots)):
+            return None
+        shifts.append(d)
+    return tuple(shifts)
+
+
 def _program_sigmoid(x: Tensor) -> Tensor:
     """``sigmoid`` as ``1 / (1 + exp(-x))`` (exact at +-inf: ``exp`` overflows to inf, the result to 0), for
     compiled programs only (no gradients: ``exp`` overflows in the backward). Inductor's vectorised C++
@@ -263,6 +276,7 @@ class NodeLSTMSurrogate(nn.Module):
         mixed = c.mix_neighbours()
         self.register_buffer("idx_mix", torch.tensor(mixed, dtype=torch.long).t().reshape(-1) if mixed else None,
                              persistent=False)  # (K * 2 mix,): node k's mixed slots, k-major; K for none
+        self._mix_shifts = _as_shifts(mixed, K)
         movable = torch.zeros(c.n_tracked)
         movable[list(c.modeled)] = 1.0
         self.register_buffer("movable", movable, persistent=False)  # (n_tracked,): 1 modelled, 0 anchor
@@ -297,6 +311,8 @@ class NodeLSTMSurrogate(nn.Module):
         self.register_buffer("_gate_scale", torch.tensor([1.0, 1.0, 2.0, 1.0]).repeat_interleave(c.hidden),
                              persistent=False)  # the LSTM's gates i, f, g, o: g's tanh through a sigmoid
         for name in ("_carry_wih", "_carry_whh", "_carry_bias"):  # freeze_features: _carried_weights()
+            self.register_buffer(name, None, persistent=False)
+        for name in ("_head_w0", "_head_b0"):  # freeze_features: _folded_first_layer()
             self.register_buffer(name, None, persistent=False)
         self.use_symmetry(())  # the images in use (all of G) and the stabiliser projected on (none)
 
@@ -416,6 +432,7 @@ class NodeLSTMSurrogate(nn.Module):
             lambda x: self._newest_features(x[:, :2], x[:, 2]), 3)
         self._lstm_stacked = self._stacked_lstm_weights().contiguous()  # a constant of the program, not an op in it
         self._carry_wih, self._carry_whh, self._carry_bias = (t.contiguous() for t in self._carried_weights())
+        self._head_w0, self._head_b0 = (t.contiguous() for t in self._folded_first_layer())
         self._select_features()
         return self
 
@@ -476,6 +493,7 @@ class NodeLSTMSurrogate(nn.Module):
         self._feature_matrix_group = self._feature_rows_group = self._feature_blocks_group = None
         self._carry_rows_group = self._carry_blocks_group = None
         self._carry_wih = self._carry_whh = self._carry_bias = None
+        self._head_w0 = self._head_b0 = None
         self._lstm_stacked = None
 
     def widen(self, head_hidden: int | None = None, stencil: int | None = None,
@@ -641,13 +659,28 @@ class NodeLSTMSurrogate(nn.Module):
         B, K = wrench.shape[:2]
         mlp, linear = (_program_mlp, _program_linear) if program else (nn.Module.__call__, nn.Module.__call__)
         wf = mlp(self.wrench, wrench / self.f_scale)
-        emb = self.embed.weight.expand(B, K, -1)
         h = h.reshape(B, K, -1)
-        parts = [h, wf, emb]
+        folded = program and self._head_w0 is not None  # the embedding in a bias per node
+        parts = [h, wf] if folded else [h, wf, self.embed.weight.expand(B, K, -1)]
         if self.idx_mix is not None:  # the neighbours' (projected) LSTM outputs, zero for none
             n = h if self.mix_proj is None else linear(self.mix_proj, h)
-            parts.append(nn.functional.pad(n, (0, 0, 0, 1))[:, self.idx_mix].reshape(B, K, -1))
-        return mlp(self.head, torch.cat(parts, -1)) * self.a_scale
+            if self._mix_shifts is None:
+                parts.append(nn.functional.pad(n, (0, 0, 0, 1))[:, self.idx_mix].reshape(B, K, -1))
+            else:  # the same as slices of the zero-padded outputs: no gather in a compiled program
+                r = max(abs(d) for d in self._mix_shifts)
+                n = nn.functional.pad(n, (0, 0, r, r))
+                parts += [n[:, r + d:r + d + K] for d in self._mix_shifts]
+        x = torch.cat(parts, -1)
+        if folded:
+            return mlp(self.head[1:], x @ self._head_w0 + self._head_b0) * self.a_scale
+        return mlp(self.head, x) * self.a_scale
+
+    def _folded_first_layer(self) -> tuple[Tensor, Tensor]:
+        """The head's first layer with the node embedding folded into a bias per node: its weights on the other
+        inputs, transposed, (inputs - embedding, head_hidden), and the bias (K, head_hidden) (:meth:`_head` in a
+        compiled program; frozen by :meth:`freeze_features`)."""
+        w, n0, e = self.head[0].weight, self.config.hidden + self.config.wrench_hidden, self.config.embedding
+        return torch.cat([w[:, :n0], w[:, n0 + e:]], 1).t(), self.head[0].bias + self.embed.weight @ w[:, n0:n0 + e].t()
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
         """The head's output (B, K, 3) at rest: every history frame the reference shape (B, n_tracked, 3),
