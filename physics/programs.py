@@ -9,6 +9,7 @@ key their programs on them) and it does not track gradients.
 """
 from __future__ import annotations
 
+import os
 import warnings
 from typing import Callable, Sequence
 
@@ -33,8 +34,13 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
 
     ``direct``: trace with inductor's decompositions and compile with ``compile_fx_inner``, called
     through the compiled graph's own callable, without the AOT-autograd runtime wrappers around what
-    ``torch._inductor.compile`` returns (an empty program 9 -> 4.5 us a call here). For the small
-    programs of a real-time step; the Cosserat solver's long programs keep the default path."""
+    ``torch._inductor.compile`` returns (an empty program 9 -> 4.5 us a call here). On the CPU it is compiled ahead
+    of time instead (AOTInductor, ``torch._inductor.aot_compile``) with inductor's memory planning: a shared
+    library that holds its constants and makes one allocation a call for all its buffers, outputs included, run by
+    its model runner (the two-image Simulation III carried step 69 -> 63 us here: the JIT wrapper turns every
+    constant into a tensor handle at every call); it checks its inputs' sizes and strides as the JIT wrapper
+    does (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set). For the small programs of a real-time step; the
+    Cosserat solver's long programs keep the default path."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 
@@ -55,14 +61,16 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
             gm = make_fx(traced if direct else fn, tracing_mode="fake", _allow_non_fake_inputs=True, **extra)(*inputs)
     finally:
         torch.backends.mkldnn.enabled = onednn
-    options = {"max_fusion_size": 100000, "cpp_wrapper": True}
+    mode = ("aot" if all(x.device.type == "cpu" for x in inputs) else "direct") if direct else "wrapped"
+    options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
+        {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "combined"}
     attempts = [options]
     if gemm_templates:
         attempts.insert(0, {**options, "freezing": True, "max_autotune": True, "max_autotune_gemm_backends": "CPP"})
     for opts in attempts:
         try:
             with torch.no_grad():
-                prog = _compile(gm, list(inputs), opts, direct)
+                prog = _compile(gm, list(inputs), opts, mode)
             break
         except Exception as err:  # noqa: BLE001 - e.g. NoValidChoicesError: a product no template covers
             if opts is attempts[-1]:
@@ -70,10 +78,10 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
             warnings.warn(f"compile_program: C++ GEMM templates failed ({type(err).__name__}: {err}); "
                           "compiling with library matrix products instead", RuntimeWarning, stacklevel=2)
     if direct:
-        call = prog.current_callable
+        call = prog if mode == "aot" else (lambda args, call=prog.current_callable: call(list(args)))
         if tensor_out[0]:
-            return lambda *args: call(list(args))[0]
-        return lambda *args: tuple(call(list(args)))
+            return lambda *args: call(args)[0]
+        return lambda *args: tuple(call(args))
     if not isinstance(next(n for n in gm.graph.nodes if n.op == "output").args[0], torch.fx.Node):
         return prog
 
@@ -83,11 +91,16 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     return single
 
 
-def _compile(gm, inputs: list, options: dict, direct: bool):
-    """Inductor's program for the traced graph: ``torch._inductor.compile``, or ``direct`` the compiled graph
-    of ``compile_fx_inner`` (call its ``current_callable`` with a list of the inputs)."""
-    if not direct:
+def _compile(gm, inputs: list, options: dict, mode: str):
+    """Inductor's program for the traced graph: ``"wrapped"``, ``torch._inductor.compile``'s; ``"direct"``, the
+    compiled graph of ``compile_fx_inner`` (call its ``current_callable`` with a list of the inputs); ``"aot"``, the
+    ``run(inputs) -> outputs`` of AOTInductor's model runner on the CPU."""
+    if mode == "wrapped":
         return torch._inductor.compile(gm, inputs, options=options)
+    if mode == "aot":
+        os.environ.setdefault("AOTI_RUNTIME_CHECK_INPUTS", "1")  # read by each library at its first call
+        path = torch._inductor.aot_compile(gm, tuple(inputs), options={**options, "aot_inductor.package": False})
+        return torch._C._aoti.AOTIModelContainerRunnerCpu(path, 1).run
     from torch._inductor.compile_fx import compile_fx_inner
     with torch._inductor.config.patch(options):
         return compile_fx_inner(gm, inputs, cpp_wrapper=True, is_inference=True)

@@ -19,8 +19,23 @@ def test_program_equals_its_function_for_tensor_and_tuple_outputs_and_checks_sha
         assert isinstance(got, torch.Tensor) and torch.allclose(got, one(x, w), atol=1e-6)
         a, b = p_two(x, w)
         assert torch.allclose(a, two(x, w)[0], atol=1e-6) and torch.allclose(b, two(x, w)[1], atol=1e-6)
-    with pytest.raises(RuntimeError, match="expected size 6==5"):
+    with pytest.raises(RuntimeError, match="expected size 6==5|expected: 5, but got: 6"):  # JIT | AOT wrapper
         p_one(torch.randn(6, 4), w)
+    with pytest.raises(RuntimeError, match="stride"):
+        p_one(torch.randn(4, 5).t(), w)
+
+
+def test_a_direct_cpu_program_holds_the_tensors_its_function_holds():
+    """A direct program on the CPU (ahead of time, its constants inside it) computes with the tensors the function
+    holds (weights become the program's constants), for new inputs, with tuple outputs."""
+    torch.manual_seed(1)
+    W, b, v = torch.randn(4, 6), torch.randn(6), torch.randn(6, 2)
+    fn = lambda x: (torch.tanh(x @ W + b), torch.sigmoid(x @ W) @ v)  # noqa: E731
+    prog = compile_program(fn, [torch.randn(5, 4)], gemm_templates=True, direct=True)
+    for _ in range(2):
+        x = torch.randn(5, 4)
+        for got, want in zip(prog(x), fn(x)):
+            assert torch.allclose(got, want, atol=1e-6)
 
 
 @pytest.mark.parametrize("direct", [False, True])

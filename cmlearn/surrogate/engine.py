@@ -284,7 +284,8 @@ class Stepper:
             self.rest = a
         for j in range(E):  # the states after the history's last frame but one, in the step's own arithmetic
             h, c = self._step(h, c, hist[:, [max(j - 1, 0), j]], zero, ref, self.rest)[3:]
-        self.h, self.c, self.frames = h, c, hist[:, -2:].contiguous()
+        # canonical strides, as traced (a view of hist is "contiguous" with its batch dim of size 1 strided by 3 frames)
+        self.h, self.c, self.frames = h, c, hist[:, -2:].clone(memory_format=torch.contiguous_format)
 
     def step(self, wrench: Tensor) -> Tensor:
         """The next frame (B, n_tracked, 3) for the node forces (B, K, 3) over the step."""
