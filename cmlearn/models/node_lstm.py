@@ -658,9 +658,9 @@ class NodeLSTMSurrogate(nn.Module):
         (B, K, 3): the force layers, the node embedding and the dense head."""
         B, K = wrench.shape[:2]
         mlp, linear = (_program_mlp, _program_linear) if program else (nn.Module.__call__, nn.Module.__call__)
-        wf = mlp(self.wrench, wrench / self.f_scale)
+        folded = program and self._head_w0 is not None  # the embedding in a bias per node, the force's last layer
+        wf = mlp(self.wrench[:-1] if folded else self.wrench, wrench / self.f_scale)  # in the head's first
         h = h.reshape(B, K, -1)
-        folded = program and self._head_w0 is not None  # the embedding in a bias per node
         parts = [h, wf] if folded else [h, wf, self.embed.weight.expand(B, K, -1)]
         if self.idx_mix is not None:  # the neighbours' (projected) LSTM outputs, zero for none
             n = h if self.mix_proj is None else linear(self.mix_proj, h)
@@ -676,11 +676,15 @@ class NodeLSTMSurrogate(nn.Module):
         return mlp(self.head, x) * self.a_scale
 
     def _folded_first_layer(self) -> tuple[Tensor, Tensor]:
-        """The head's first layer with the node embedding folded into a bias per node: its weights on the other
-        inputs, transposed, (inputs - embedding, head_hidden), and the bias (K, head_hidden) (:meth:`_head` in a
-        compiled program; frozen by :meth:`freeze_features`)."""
-        w, n0, e = self.head[0].weight, self.config.hidden + self.config.wrench_hidden, self.config.embedding
-        return torch.cat([w[:, :n0], w[:, n0 + e:]], 1).t(), self.head[0].bias + self.embed.weight @ w[:, n0:n0 + e].t()
+        """The head's first layer with the node embedding folded into a bias per node and the force layers' last
+        (linear) layer into its weights: its weights on the LSTM output, the force layers' hidden output and the
+        neighbours', transposed, (inputs - embedding, head_hidden), and the bias (K, head_hidden) (:meth:`_head` in
+        a compiled program; frozen by :meth:`freeze_features`)."""
+        c, w, last = self.config, self.head[0].weight, self.wrench[-1]
+        n0, n1 = c.hidden, c.hidden + c.wrench_hidden
+        w_force, w_embed = w[:, n0:n1], w[:, n1:n1 + c.embedding]
+        weights = torch.cat([w[:, :n0], w_force @ last.weight, w[:, n1 + c.embedding:]], 1).t()
+        return weights, self.head[0].bias + last.bias @ w_force.t() + self.embed.weight @ w_embed.t()
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
         """The head's output (B, K, 3) at rest: every history frame the reference shape (B, n_tracked, 3),
