@@ -20,7 +20,7 @@ __all__ = ["compile_program"]
 
 
 def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool = False,
-                    direct: bool = False) -> Callable:
+                    direct: bool = False, ahead_of_time: bool = True) -> Callable:
     """``make_fx`` (fake tensors; tensors held by ``fn`` itself, e.g. module weights, become constants)
     + ``torch._inductor.compile`` of ``fn(*inputs)`` for these shapes. oneDNN is off while tracing,
     so that an LSTM decomposes into matrix products and pointwise gates that inductor fuses, instead
@@ -34,12 +34,13 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
 
     ``direct``: trace with inductor's decompositions and compile with ``compile_fx_inner``, called
     through the compiled graph's own callable, without the AOT-autograd runtime wrappers around what
-    ``torch._inductor.compile`` returns (an empty program 9 -> 4.5 us a call here). On the CPU it is compiled ahead
-    of time instead (AOTInductor, ``torch._inductor.aot_compile``) with inductor's memory planning: a shared
-    library that holds its constants and makes one allocation a call for all its buffers, outputs included, run by
-    its model runner (the two-image Simulation III carried step 69 -> 63 us here: the JIT wrapper turns every
-    constant into a tensor handle at every call); it checks its inputs' sizes and strides as the JIT wrapper
-    does (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set). For the small programs of a real-time step; the
+    ``torch._inductor.compile`` returns (an empty program 9 -> 4.5 us a call here). On the CPU, unless
+    ``ahead_of_time`` is False, it is compiled ahead of time instead (AOTInductor, ``torch._inductor.aot_compile``)
+    with inductor's memory planning: a shared library that holds its constants and makes one allocation a call for
+    all its buffers and outputs, run by its model runner (the JIT wrapper turns every constant into a tensor handle
+    at every call: two dozen in the Simulation III carried step, 69 us a call that way and 63 ahead of time).
+    Its inputs' sizes and strides are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set
+    here unless set), strides of size-1 dimensions included. For the small programs of a real-time step; the
     Cosserat solver's long programs keep the default path."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
@@ -61,7 +62,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
             gm = make_fx(traced if direct else fn, tracing_mode="fake", _allow_non_fake_inputs=True, **extra)(*inputs)
     finally:
         torch.backends.mkldnn.enabled = onednn
-    mode = ("aot" if all(x.device.type == "cpu" for x in inputs) else "direct") if direct else "wrapped"
+    cpu = all(x.device.type == "cpu" for x in inputs)
+    mode = ("aot" if ahead_of_time and cpu else "direct") if direct else "wrapped"
     options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
         {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "combined"}
     attempts = [options]

@@ -6,13 +6,16 @@ import torch
 from physics.programs import compile_program
 
 
-@pytest.mark.parametrize("direct", [False, True])
-def test_program_equals_its_function_for_tensor_and_tuple_outputs_and_checks_shapes(direct):
+MODES = {"wrapped": {}, "jit": {"direct": True, "ahead_of_time": False}, "aot": {"direct": True}}
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_program_equals_its_function_for_tensor_and_tuple_outputs_and_checks_shapes(mode):
     torch.manual_seed(0)
     x, w = torch.randn(5, 4), torch.randn(4, 3)
     one = lambda x, w: torch.tanh(x @ w) + 1  # noqa: E731
     two = lambda x, w: (x + w.sum(), torch.sigmoid(x @ w))  # noqa: E731
-    p_one, p_two = compile_program(one, [x, w], direct=direct), compile_program(two, [x, w], direct=direct)
+    p_one, p_two = compile_program(one, [x, w], **MODES[mode]), compile_program(two, [x, w], **MODES[mode])
     for _ in range(2):  # new inputs of the same shapes, not the traced ones
         x, w = torch.randn(5, 4), torch.randn(4, 3)
         got = p_one(x, w)
@@ -38,11 +41,11 @@ def test_a_direct_cpu_program_holds_the_tensors_its_function_holds():
             assert torch.allclose(got, want, atol=1e-6)
 
 
-@pytest.mark.parametrize("direct", [False, True])
-def test_a_program_traced_with_one_tensor_as_two_inputs_keeps_them_apart(direct):
+@pytest.mark.parametrize("mode", MODES)
+def test_a_program_traced_with_one_tensor_as_two_inputs_keeps_them_apart(mode):
     """One tensor passed as two inputs while tracing (zeros for both a force and an offset) is traced as two: later
     calls with different tensors read each where it is used (before 2026-11-30 one input stood for both)."""
     zero = torch.zeros(3)
-    prog = compile_program(lambda a, b: 2 * a - b, [zero, zero], direct=direct)
+    prog = compile_program(lambda a, b: 2 * a - b, [zero, zero], **MODES[mode])
     a, b = torch.tensor([1.0, 2.0, 3.0]), torch.tensor([0.5, 0.0, -1.0])
     assert torch.equal(prog(a, b), 2 * a - b)

@@ -12,11 +12,13 @@ and the last output against both weight matrices. Each peer differs from it in o
 * ``torch``: ``torch.sigmoid``, ``torch.tanh`` and the ``nn`` layers as they are (before 2026-11-29);
 * ``current_wrapped``: called through the AOT-autograd wrappers of ``torch._inductor.compile`` (``direct=False``,
   before 2026-11-29, later);
-* ``input_product_first``: the LSTM's input product for all frames first, then the recurrent products (the same).
+* ``input_product_first``: the LSTM's input product for all frames first, then the recurrent products (the same);
+* ``current_jit``: compiled by inductor's JIT C++ wrapper (``compile_fx_inner``) and called through its callable,
+  not ahead of time (``ahead_of_time=False``, before 2026-11-30, later).
 
 Beside them, ``carried``: the rollout's step (``NodeLSTMSurrogate.carried_step``, as ``cmlearn.surrogate.Stepper``
 runs it since 2026-11-30), which takes the LSTM states of the step before and runs only the newest frame through the
-LSTM, at every position of the window at once.
+LSTM, at every position of the window at once; ``carried_jit``, the same through the JIT wrapper.
 
 All are compiled for a batch-1 step of Simulation III's held-out scene with one, two and four mirror images in use
 (``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the fastest of ``--rounds`` means of
@@ -44,14 +46,17 @@ FORMS = {
 }
 
 
-# name: (activations and layers, called directly, the LSTM's products stacked per frame)
-VARIANTS = {"current": ("current", True, True), "torch": ("torch", True, True),
-            "current_wrapped": ("current", False, True), "input_product_first": ("current", True, False)}
+# name: (activations and layers, called directly, the LSTM's products stacked per frame, ahead of time)
+VARIANTS = {"current": ("current", True, True, True), "torch": ("torch", True, True, True),
+            "current_wrapped": ("current", False, True, True), "input_product_first": ("current", True, False, True),
+            "current_jit": ("current", True, True, False)}
 
 
-def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True, stacked: bool = True):
-    """The model's program-form step compiled with the activations and layers of ``form``, called directly or
-    through the wrappers of ``torch._inductor.compile``, its LSTM's products ``stacked`` per frame or not."""
+def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True, stacked: bool = True,
+                 ahead_of_time: bool = True):
+    """The model's program-form step compiled with the activations and layers of ``form``, called directly (ahead of
+    time or through inductor's JIT wrapper) or through the wrappers of ``torch._inductor.compile``, its LSTM's
+    products ``stacked`` per frame or not."""
     names = ("_program_sigmoid", "_program_tanh", "_program_mlp", "_program_linear")
     saved = [getattr(node_lstm, n) for n in names]
     for n, f in zip(names, FORMS[form]):
@@ -59,7 +64,7 @@ def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = Tr
     model._lstm_last = functools.partial(type(model)._lstm_last, model, stacked=stacked)
     try:
         return compile_program(lambda h, w, r, *rest: model(h, w, r, program=True, rest=rest[0] if rest else None),
-                               args, gemm_templates=gemm_templates, direct=direct)
+                               args, gemm_templates=gemm_templates, direct=direct, ahead_of_time=ahead_of_time)
     finally:
         for n, f in zip(names, saved):
             setattr(node_lstm, n, f)
@@ -112,28 +117,31 @@ def main(argv=None):
         args = [hist, wrench, ref] + ([] if rest is None else [rest])
         with torch.no_grad():
             want = model(hist, wrench, ref, rest=rest)
-        progs = {k: compile_form(model, form, args, not a.quick, direct, stacked)
-                 for k, (form, direct, stacked) in VARIANTS.items()}
+        progs = {k: compile_form(model, form, args, not a.quick, *how) for k, (form, *how) in VARIANTS.items()}
         st = engine.stepper(hist, ref)  # the rollout's states after hist[:, -2], and its rest output
         cargs = [st.h, st.c, st.frames, wrench, ref, st.rest]
-        carried = compile_program(lambda *c: model.carried_step(*c, program=True), cargs, gemm_templates=not a.quick,
-                                  direct=True)
+        carried = {k: compile_program(lambda *c: model.carried_step(*c, program=True), cargs,
+                                      gemm_templates=not a.quick, direct=True, ahead_of_time=aot)
+                   for k, aot in (("carried", True), ("carried_jit", False))}
         dev = {k: float((p(*args) - want).abs().max()) for k, p in progs.items()}
-        dev["carried"] = float((carried(*cargs)[0] - want).abs().max())
-        calls = {k: (lambda p: lambda: p(*args))(p) for k, p in progs.items()}
-        us = interleaved_us({**calls, "carried": lambda: carried(*cargs)}, rounds, n)
+        dev.update({k: float((p(*cargs)[0] - want).abs().max()) for k, p in carried.items()})
+        calls = {k: (lambda p, x: lambda: p(*x))(p, args) for k, p in progs.items()}
+        calls.update({k: (lambda p: lambda: p(*cargs))(p) for k, p in carried.items()})
+        us = interleaved_us(calls, rounds, n)
         images = model.img_sign.shape[0]
         res["images"][str(images)] = {"axes": list(axes), "current_us": us["current"], "torch_us": us["torch"],
                                       "current_wrapped_us": us["current_wrapped"],
                                       "input_product_first_us": us["input_product_first"],
-                                      "carried_us": us["carried"],
+                                      "carried_us": us["carried"], "current_jit_us": us["current_jit"],
+                                      "carried_jit_us": us["carried_jit"],
                                       "time_ratio": us["current"] / us["torch"],
                                       "direct_call_saves_us": us["current_wrapped"] - us["current"],
                                       "max_abs_vs_eager_m": dev}
         print(f"{images} of {model.mirror_sign.shape[0]} images: current {us['current']:.1f} us, torch's "
               f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); the current form "
               f"called through the wrappers {us['current_wrapped']:.1f} us, with the LSTM's input product first "
-              f"{us['input_product_first']:.1f} us; the rollout's carried step {us['carried']:.1f} us; "
+              f"{us['input_product_first']:.1f} us, through inductor's JIT wrapper {us['current_jit']:.1f} us; the "
+              f"rollout's carried step {us['carried']:.1f} us (JIT wrapper {us['carried_jit']:.1f} us); "
               f"max |compiled - eager| "
               + " / ".join(f"{v:.1e}" for v in dev.values()) + " m", flush=True)
     model.use_symmetry(())
