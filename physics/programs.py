@@ -37,11 +37,12 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     ``torch._inductor.compile`` returns (an empty program 9 -> 4.5 us a call here). On the CPU, unless
     ``ahead_of_time`` is False, it is compiled ahead of time instead (AOTInductor, ``torch._inductor.aot_compile``)
     with inductor's memory planning: a shared library that holds its constants and makes one allocation a call for
-    all its buffers and outputs, run by its model runner (the JIT wrapper turns every constant into a tensor handle
-    at every call: two dozen in the Simulation III carried step, 69 us a call that way and 63 ahead of time).
-    Its inputs' sizes and strides are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set
-    here unless set), strides of size-1 dimensions included. For the small programs of a real-time step; the
-    Cosserat solver's long programs keep the default path."""
+    its intermediate buffers (each output has its own, so that outputs kept, a rollout's frames, keep nothing else),
+    run by its model runner (the JIT wrapper turns every constant, two dozen in a Simulation III step, into a tensor
+    handle at every call; ``docs/surrogates.md``, "Programs compiled ahead of time"). Its inputs' sizes and strides
+    are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set), strides of
+    size-1 dimensions included. For the small programs of a real-time step; the Cosserat solver's long programs
+    keep the default path."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 
@@ -65,7 +66,7 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     cpu = all(x.device.type == "cpu" for x in inputs)
     mode = ("aot" if ahead_of_time and cpu else "direct") if direct else "wrapped"
     options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
-        {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "combined"}
+        {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "intermediates"}
     attempts = [options]
     if gemm_templates:
         attempts.insert(0, {**options, "freezing": True, "max_autotune": True, "max_autotune_gemm_backends": "CPP"})

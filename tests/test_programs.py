@@ -30,7 +30,7 @@ def test_program_equals_its_function_for_tensor_and_tuple_outputs_and_checks_sha
 
 def test_a_direct_cpu_program_holds_the_tensors_its_function_holds():
     """A direct program on the CPU (ahead of time, its constants inside it) computes with the tensors the function
-    holds (weights become the program's constants), for new inputs, with tuple outputs."""
+    holds (weights become the program's constants), for new inputs, with tuple outputs, each in its own storage."""
     torch.manual_seed(1)
     W, b, v = torch.randn(4, 6), torch.randn(6), torch.randn(6, 2)
     fn = lambda x: (torch.tanh(x @ W + b), torch.sigmoid(x @ W) @ v)  # noqa: E731
@@ -39,6 +39,8 @@ def test_a_direct_cpu_program_holds_the_tensors_its_function_holds():
         x = torch.randn(5, 4)
         for got, want in zip(prog(x), fn(x)):
             assert torch.allclose(got, want, atol=1e-6)
+            # its own storage: an output kept (a rollout's frames) keeps none of the call's other buffers
+            assert got.untyped_storage().nbytes() == got.numel() * got.element_size()
 
 
 @pytest.mark.parametrize("mode", MODES)
