@@ -637,7 +637,8 @@ def test_report_loop_swing_against_the_lgvi(tmp_path):
 
 def test_bench_surrogate_program_quick(tmp_path):
     """The current program form of the mirrored Simulation III step, the four it replaced and the rollout's carried
-    step (ahead of time and through the JIT wrapper) compile and equal the eager step to round-off; the timings are there (not compared: a shared CI machine)."""
+    step (ahead of time and through the JIT wrapper) compile and equal the eager step to round-off; the timings are
+    there (not compared: a shared CI machine)."""
     res = run_script([str(ROOT / "scripts/bench/surrogate_program.py"), "--quick",
                       "--checkpoint", str(ROOT / "checkpoints/semicircle.pt")], tmp_path)
     (images, fig), = res["images"].items()

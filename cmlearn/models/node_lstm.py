@@ -658,8 +658,8 @@ class NodeLSTMSurrogate(nn.Module):
         (B, K, 3): the force layers, the node embedding and the dense head."""
         B, K = wrench.shape[:2]
         mlp, linear = (_program_mlp, _program_linear) if program else (nn.Module.__call__, nn.Module.__call__)
-        folded = program and self._head_w0 is not None  # the embedding in a bias per node, the force's last layer
-        wf = mlp(self.wrench[:-1] if folded else self.wrench, wrench / self.f_scale)  # in the head's first
+        folded = program and self._head_w0 is not None  # the embedding and the last force layer in the head's first
+        wf = mlp(self.wrench[:-1] if folded else self.wrench, wrench / self.f_scale)
         h = h.reshape(B, K, -1)
         parts = [h, wf] if folded else [h, wf, self.embed.weight.expand(B, K, -1)]
         if self.idx_mix is not None:  # the neighbours' (projected) LSTM outputs, zero for none
