@@ -680,10 +680,10 @@ class NodeLSTMSurrogate(nn.Module):
         (linear) layer into its weights: its weights on the LSTM output, the force layers' hidden output and the
         neighbours', transposed, (inputs - embedding, head_hidden), and the bias (K, head_hidden) (:meth:`_head` in
         a compiled program; frozen by :meth:`freeze_features`)."""
-        c, w, last = self.config, self.head[0].weight, self.wrench[-1]
-        n0, n1 = c.hidden, c.hidden + c.wrench_hidden
-        w_force, w_embed = w[:, n0:n1], w[:, n1:n1 + c.embedding]
-        weights = torch.cat([w[:, :n0], w_force @ last.weight, w[:, n1 + c.embedding:]], 1).t()
+        w, last, n0, n2 = self.head[0].weight, self.wrench[-1], self.config.hidden, self._head_own_inputs
+        n1 = n0 + self.config.wrench_hidden
+        w_force, w_embed = w[:, n0:n1], w[:, n1:n2]
+        weights = torch.cat([w[:, :n0], w_force @ last.weight, w[:, n2:]], 1).t()
         return weights, self.head[0].bias + last.bias @ w_force.t() + self.embed.weight @ w_embed.t()
 
     def rest_accel(self, ref: Tensor, program: bool = False) -> Tensor:
