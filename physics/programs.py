@@ -9,9 +9,11 @@ key their programs on them) and it does not track gradients.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
 from typing import Callable, Sequence
+from unittest import mock
 
 import torch
 from torch import Tensor
@@ -20,7 +22,7 @@ __all__ = ["compile_program"]
 
 
 def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool = False,
-                    direct: bool = False, ahead_of_time: bool = True) -> Callable:
+                    direct: bool = False, ahead_of_time: bool = True, fast_exp: bool = False) -> Callable:
     """``make_fx`` (fake tensors; tensors held by ``fn`` itself, e.g. module weights, become constants)
     + ``torch._inductor.compile`` of ``fn(*inputs)`` for these shapes. oneDNN is off while tracing,
     so that an LSTM decomposes into matrix products and pointwise gates that inductor fuses, instead
@@ -42,7 +44,15 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     handle at every call; ``docs/surrogates.md``, "Programs compiled ahead of time"). Its inputs' sizes and strides
     are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set), strides of
     size-1 dimensions included. For the small programs of a real-time step; the Cosserat solver's long programs
-    keep the default path."""
+    keep the default path.
+
+    ``fast_exp``: the C++ programs' vectorised ``exp`` as ATen's inline ``exp_u20`` (a degree-5 polynomial after
+    range reduction, documented to 20 units in the last place, measured 3.7e-7 relative (3 units) on [-80, 80]; 0 below
+    -87.3 and ``FLT_MAX`` above 88.7, not inf, and NaN not kept) instead of Sleef's function call (1 unit). ``exp`` carries every sigmoid and tanh of a compiled
+    surrogate step (:func:`cmlearn.models.node_lstm._program_sigmoid`); there Sleef's call took 13 % of the two-image
+    Simulation III step and the step 77 -> 64 us (``docs/surrogates.md``, "A faster exp"). Not for CUDA programs
+    (Triton's ``exp``). Ahead of time, these libraries are kept apart from the others (inductor names a library for
+    its wrapper code, the same with either ``exp``); just in time, inductor's caches are bypassed."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 
@@ -67,12 +77,16 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     mode = ("aot" if ahead_of_time and cpu else "direct") if direct else "wrapped"
     options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
         {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "intermediates"}
+    if fast_exp:  # apart from programs with Sleef's exp: a graph's library is named for its wrapper code only (and
+        # a library loaded twice from one path is the first one), and the JIT path's caches are keyed on the graph
+        options = {**options, **({"aot_inductor.output_path": "exp_u20"} if mode == "aot" else
+                                 {"force_disable_caches": True})}
     attempts = [options]
     if gemm_templates:
         attempts.insert(0, {**options, "freezing": True, "max_autotune": True, "max_autotune_gemm_backends": "CPP"})
     for opts in attempts:
         try:
-            with torch.no_grad():
+            with torch.no_grad(), _exp_u20() if fast_exp else contextlib.nullcontext():
                 prog = _compile(gm, list(inputs), opts, mode)
             break
         except Exception as err:  # noqa: BLE001 - e.g. NoValidChoicesError: a product no template covers
@@ -92,6 +106,13 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
         out = prog(*args)
         return out[0] if isinstance(out, (list, tuple)) else out
     return single
+
+
+def _exp_u20():
+    """While compiling: inductor's vectorised C++ ``exp`` generated as ATen's ``Vectorized::exp_u20`` (scalar
+    loops keep ``std::exp``)."""
+    from torch._inductor.codegen.cpp import CppVecOverrides
+    return mock.patch.object(CppVecOverrides, "exp", staticmethod(lambda x: f"{x}.exp_u20()"))
 
 
 def _compile(gm, inputs: list, options: dict, mode: str):

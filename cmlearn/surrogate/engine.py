@@ -139,14 +139,15 @@ class Surrogate:
     def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
         return self.model(hist, wrench, ref, rest=rest)
 
-    def compile(self, gemm_templates: bool = True) -> "Surrogate":
+    def compile(self, gemm_templates: bool = True, fast_exp: bool = True) -> "Surrogate":
         """Run :meth:`step` (and a task's own closed loop, :meth:`program`) through programs compiled for each
         new input shape, of the model's ``program=True`` form (same results to float round-off;
         ``torch.compile`` of the step did not help: the LSTM stays one opaque call). Programs track no
         gradients, so the step skips ``no_grad`` (a microsecond a call). ``gemm_templates`` False compiles in
-        about half the time to programs about half as fast (tests)."""
+        about half the time to programs about half as fast (tests). ``fast_exp``: the sigmoids' and tanhs' ``exp``
+        in the CPU programs to 20 units in the last place, not 1 (:func:`~physics.programs.compile_program`)."""
         model = self.model
-        self._gemm_templates = gemm_templates
+        self._gemm_templates, self._fast_exp = gemm_templates, fast_exp
 
         def fn(h, w, r, *rest):  # the rest output only where the model is anchored (make_fx counts args)
             return model(h, w, r, program=True, rest=rest[0] if rest else None)
@@ -173,7 +174,7 @@ class Surrogate:
         prog = self._programs.get(full)
         if prog is None:
             prog = self._programs[full] = compile_program(make(True), args, gemm_templates=self._gemm_templates,
-                                                             direct=True)
+                                                             direct=True, fast_exp=self._fast_exp)
         return prog
 
     def scene_wrench(self, scene, n_steps: int) -> Tensor:

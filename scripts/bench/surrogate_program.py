@@ -14,11 +14,14 @@ and the last output against both weight matrices. Each peer differs from it in o
   before 2026-11-29, later);
 * ``input_product_first``: the LSTM's input product for all frames first, then the recurrent products (the same);
 * ``current_jit``: compiled by inductor's JIT C++ wrapper (``compile_fx_inner``) and called through its callable,
-  not ahead of time (``ahead_of_time=False``, before 2026-11-30, later).
+  not ahead of time (``ahead_of_time=False``, before 2026-11-30, later);
+* ``current_sleef_exp``: ``exp`` as Sleef's function call, not ATen's inline ``exp_u20`` (``fast_exp=False``, before
+  2026-11-30, later still).
 
 Beside them, ``carried``: the rollout's step (``NodeLSTMSurrogate.carried_step``, as ``cmlearn.surrogate.Stepper``
 runs it since 2026-11-30), which takes the LSTM states of the step before and runs only the newest frame through the
-LSTM, at every position of the window at once; ``carried_jit``, the same through the JIT wrapper.
+LSTM, at every position of the window at once; ``carried_jit``, the same through the JIT wrapper;
+``carried_sleef_exp``, with Sleef's ``exp``.
 
 All are compiled for a batch-1 step of Simulation III's held-out scene with one, two and four mirror images in use
 (``use_symmetry`` of both mirrors, of x alone, of none). Each figure is the fastest of ``--rounds`` means of
@@ -46,17 +49,19 @@ FORMS = {
 }
 
 
-# name: (activations and layers, called directly, the LSTM's products stacked per frame, ahead of time)
-VARIANTS = {"current": ("current", True, True, True), "torch": ("torch", True, True, True),
-            "current_wrapped": ("current", False, True, True), "input_product_first": ("current", True, False, True),
-            "current_jit": ("current", True, True, False)}
+# name: (activations and layers, called directly, the LSTM's products stacked per frame, ahead of time, fast exp)
+VARIANTS = {"current": ("current", True, True, True, True), "torch": ("torch", True, True, True, True),
+            "current_wrapped": ("current", False, True, True, True),
+            "input_product_first": ("current", True, False, True, True),
+            "current_jit": ("current", True, True, False, True), "current_sleef_exp": ("current", True, True, True, False)}
+CARRIED = {"carried": (True, True), "carried_jit": (False, True), "carried_sleef_exp": (True, False)}
 
 
 def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = True, stacked: bool = True,
-                 ahead_of_time: bool = True):
+                 ahead_of_time: bool = True, fast_exp: bool = True):
     """The model's program-form step compiled with the activations and layers of ``form``, called directly (ahead of
     time or through inductor's JIT wrapper) or through the wrappers of ``torch._inductor.compile``, its LSTM's
-    products ``stacked`` per frame or not."""
+    products ``stacked`` per frame or not, with ATen's inline ``exp`` or Sleef's."""
     names = ("_program_sigmoid", "_program_tanh", "_program_mlp", "_program_linear")
     saved = [getattr(node_lstm, n) for n in names]
     for n, f in zip(names, FORMS[form]):
@@ -64,7 +69,8 @@ def compile_form(model, form: str, args, gemm_templates: bool, direct: bool = Tr
     model._lstm_last = functools.partial(type(model)._lstm_last, model, stacked=stacked)
     try:
         return compile_program(lambda h, w, r, *rest: model(h, w, r, program=True, rest=rest[0] if rest else None),
-                               args, gemm_templates=gemm_templates, direct=direct, ahead_of_time=ahead_of_time)
+                               args, gemm_templates=gemm_templates, direct=direct, ahead_of_time=ahead_of_time,
+                               fast_exp=fast_exp)
     finally:
         for n, f in zip(names, saved):
             setattr(node_lstm, n, f)
@@ -121,8 +127,8 @@ def main(argv=None):
         st = engine.stepper(hist, ref)  # the rollout's states after hist[:, -2], and its rest output
         cargs = [st.h, st.c, st.frames, wrench, ref, st.rest]
         carried = {k: compile_program(lambda *c: model.carried_step(*c, program=True), cargs,
-                                      gemm_templates=not a.quick, direct=True, ahead_of_time=aot)
-                   for k, aot in (("carried", True), ("carried_jit", False))}
+                                      gemm_templates=not a.quick, direct=True, ahead_of_time=aot, fast_exp=fast)
+                   for k, (aot, fast) in CARRIED.items()}
         dev = {k: float((p(*args) - want).abs().max()) for k, p in progs.items()}
         dev.update({k: float((p(*cargs)[0] - want).abs().max()) for k, p in carried.items()})
         calls = {k: (lambda p, x: lambda: p(*x))(p, args) for k, p in progs.items()}
@@ -134,14 +140,17 @@ def main(argv=None):
                                       "input_product_first_us": us["input_product_first"],
                                       "carried_us": us["carried"], "current_jit_us": us["current_jit"],
                                       "carried_jit_us": us["carried_jit"],
+                                      "current_sleef_exp_us": us["current_sleef_exp"],
+                                      "carried_sleef_exp_us": us["carried_sleef_exp"],
                                       "time_ratio": us["current"] / us["torch"],
                                       "direct_call_saves_us": us["current_wrapped"] - us["current"],
                                       "max_abs_vs_eager_m": dev}
         print(f"{images} of {model.mirror_sign.shape[0]} images: current {us['current']:.1f} us, torch's "
               f"{us['torch']:.1f} us ({100 * (1 - us['current'] / us['torch']):.0f} % less time); the current form "
               f"called through the wrappers {us['current_wrapped']:.1f} us, with the LSTM's input product first "
-              f"{us['input_product_first']:.1f} us, through inductor's JIT wrapper {us['current_jit']:.1f} us; the "
-              f"rollout's carried step {us['carried']:.1f} us (JIT wrapper {us['carried_jit']:.1f} us); "
+              f"{us['input_product_first']:.1f} us, through inductor's JIT wrapper {us['current_jit']:.1f} us, "
+              f"with Sleef's exp {us['current_sleef_exp']:.1f} us; the rollout's carried step {us['carried']:.1f} us "
+              f"(JIT wrapper {us['carried_jit']:.1f} us, Sleef's exp {us['carried_sleef_exp']:.1f} us); "
               f"max |compiled - eager| "
               + " / ".join(f"{v:.1e}" for v in dev.values()) + " m", flush=True)
     model.use_symmetry(())
