@@ -125,7 +125,7 @@ def main(argv=None):
             want = model(hist, wrench, ref, rest=rest)
         progs = {k: compile_form(model, form, args, not a.quick, *how) for k, (form, *how) in VARIANTS.items()}
         st = engine.stepper(hist, ref)  # the rollout's states after hist[:, -2], and its rest output
-        cargs = [st.h, st.c, st.frames, wrench, ref, st.rest]
+        cargs = [*st.state, st.frames, wrench, ref, st.rest]
         carried = {k: compile_program(lambda *c: model.carried_step(*c, program=True), cargs,
                                       gemm_templates=not a.quick, direct=True, ahead_of_time=aot, fast_exp=fast)
                    for k, (aot, fast) in CARRIED.items()}
