@@ -47,12 +47,13 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     keep the default path.
 
     ``fast_exp``: the C++ programs' vectorised ``exp`` as ATen's inline ``exp_u20`` (a degree-5 polynomial after
-    range reduction, documented to 20 units in the last place, measured 3.7e-7 relative (3 units) on [-80, 80]; 0 below
-    -87.3 and ``FLT_MAX`` above 88.7, not inf, and NaN not kept) instead of Sleef's function call (1 unit). ``exp`` carries every sigmoid and tanh of a compiled
-    surrogate step (:func:`cmlearn.models.node_lstm._program_sigmoid`); there Sleef's call took 13 % of the two-image
-    Simulation III step and the step 77 -> 64 us (``docs/surrogates.md``, "A faster exp"). Not for CUDA programs
-    (Triton's ``exp``). Ahead of time, these libraries are kept apart from the others (inductor names a library for
-    its wrapper code, the same with either ``exp``); just in time, inductor's caches are bypassed."""
+    range reduction; documented to 20 units in the last place, measured to 3.7e-7 relative, 3 units, on [-80, 80];
+    0 below -87.3 and ``FLT_MAX`` above 88.7, not inf; NaN not kept) instead of Sleef's function call (1 unit).
+    ``exp`` carries every sigmoid and tanh of a compiled surrogate step (``node_lstm._program_sigmoid``): the
+    two-image Simulation III carried step 67.0 -> 63.8 us (``scripts/bench/surrogate_program.py``, Sleef's call 13 %
+    of the step in ``perf``). Not for CUDA programs (Triton's ``exp``). Ahead of time, these libraries are kept apart
+    from the others (inductor names a library for its wrapper code, the same with either ``exp``, and a library
+    loaded twice from one path is the first one); just in time, inductor's caches are bypassed."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 

@@ -263,7 +263,7 @@ class Stepper:
                              f"{tuple(hist.shape)}")
         self.model, self.ref, self.axes = model, ref, model.symmetry_axes
         B, K = hist.shape[0], model.idx_modeled.numel()
-        # h and c in one tensor (2, eta + 1, G * B * K, hidden): an input and an output fewer (0.5 us of a 64 us step here)
+        # h and c in one tensor (2, eta + 1, G * B * K, hidden): an input and an output fewer, 0.5 us of a 64 us step
         state = hist.new_zeros(2, E + 1, model.img_sign.shape[0] * B * K, model.config.hidden)
         zero, self.rest = hist.new_zeros(B, K, 3), hist.new_zeros(B, K, 3)
         self._wrench_shape, self._wrench_stride = zero.shape, zero.stride()

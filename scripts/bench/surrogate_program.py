@@ -53,7 +53,8 @@ FORMS = {
 VARIANTS = {"current": ("current", True, True, True, True), "torch": ("torch", True, True, True, True),
             "current_wrapped": ("current", False, True, True, True),
             "input_product_first": ("current", True, False, True, True),
-            "current_jit": ("current", True, True, False, True), "current_sleef_exp": ("current", True, True, True, False)}
+            "current_jit": ("current", True, True, False, True),
+            "current_sleef_exp": ("current", True, True, True, False)}
 CARRIED = {"carried": (True, True), "carried_jit": (False, True), "carried_sleef_exp": (True, False)}
 
 
