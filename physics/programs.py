@@ -113,6 +113,10 @@ def _exp_u20():
     """While compiling: inductor's vectorised C++ ``exp`` generated as ATen's ``Vectorized::exp_u20`` (scalar
     loops keep ``std::exp``)."""
     from torch._inductor.codegen.cpp import CppVecOverrides
+    if not isinstance(CppVecOverrides.__dict__.get("exp"), staticmethod):  # another torch: compile as it is
+        warnings.warn("compile_program: fast_exp needs inductor's CppVecOverrides.exp (torch 2.14); compiling with "
+                      "its own exp", RuntimeWarning, stacklevel=3)
+        return contextlib.nullcontext()
     return mock.patch.object(CppVecOverrides, "exp", staticmethod(lambda x: f"{x}.exp_u20()"))
 
 

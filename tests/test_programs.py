@@ -55,10 +55,10 @@ def test_a_program_traced_with_one_tensor_as_two_inputs_keeps_them_apart(mode):
 
 @pytest.mark.parametrize("mode", ["jit", "aot"])
 def test_fast_exp_is_its_own_program_and_accurate_to_a_few_units_in_the_last_place(mode):
-    """``fast_exp`` (ATen's inline ``exp_u20``) against Sleef's: within 6e-7 (Sleef's 1.5e-7) of float64 over the range
-    sigmoids see (measured 3.7e-7 and 7.6e-8),
-    a sigmoid still 0 and 1 at -inf and inf, and a program of its own: compiled after the same graph with Sleef's
-    ``exp`` (ahead of time, inductor names a library for its wrapper code, the same for both), its results differ."""
+    """``fast_exp`` (ATen's inline ``exp_u20``) against Sleef's: within 6e-7 (Sleef's 1.5e-7) of float64 over the
+    range sigmoids see (measured 3.7e-7 and 7.6e-8); a sigmoid still 0 and 1 at -inf and inf; and a program of its
+    own: compiled after the same graph with Sleef's ``exp`` (ahead of time, inductor names a library for its wrapper
+    code, the same for both), its results differ."""
     x = torch.linspace(-80.0, 80.0, 10_001)  # not a multiple of the vector width: the tail too
     x[0], x[5000], x[-1] = -float("inf"), 0.0, float("inf")
     fn = lambda a: (torch.exp(a), 1 / (1 + torch.exp(-a)))  # noqa: E731

@@ -986,8 +986,8 @@ def test_a_runaway_rollout_on_one_ddp_process_is_skipped_by_all(tiny, monkeypatc
                     gradient_clip_val=1.0).fit(module, train_dataloaders=torch.utils.data.DataLoader(
                         torch.utils.data.TensorDataset(*tensors), batch_size=2))
             except ProcessExitedException as err:
-                # a process killed by a signal (once in CI: SIGABRT, gloo's transport aborting) is the launch's
-                # failure, not the step's: launch once more; an error raised by the step itself is not caught
+                # a process killed by a signal (once in CI: SIGABRT in process 1, its message cut off) is the
+                # launch's failure, not the step's: launch once more; an error raised by the step is not caught
                 if attempt or err.signal_name is None:
                     raise
                 warnings.warn(f"the two-process fit was killed ({err}); launching it once more", RuntimeWarning)
