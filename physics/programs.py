@@ -51,8 +51,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     0 below -87.3 and ``FLT_MAX`` above 88.7, not inf; NaN not kept) instead of Sleef's function call (1 unit).
     ``exp`` carries every sigmoid and tanh of a compiled surrogate step (``node_lstm._program_sigmoid``): the
     two-image Simulation III carried step 67.0 -> 63.8 us (``scripts/bench/surrogate_program.py``, Sleef's call 13 %
-    of the step in ``perf``). Not for CUDA programs (Triton's ``exp``). Ahead of time, these libraries are kept apart
-    from the others (inductor names a library for its wrapper code, the same with either ``exp``, and a library
+    of the step in ``perf``). Ignored for CUDA programs (Triton's ``exp``). Ahead of time, these libraries are kept
+    apart from the others (inductor names a library for its wrapper code, the same with either ``exp``, and a library
     loaded twice from one path is the first one); just in time, inductor's caches are bypassed."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
@@ -75,6 +75,7 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     finally:
         torch.backends.mkldnn.enabled = onednn
     cpu = all(x.device.type == "cpu" for x in inputs)
+    fast_exp = fast_exp and cpu  # Triton's exp on CUDA
     mode = ("aot" if ahead_of_time and cpu else "direct") if direct else "wrapped"
     options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
         {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "intermediates"}
