@@ -115,6 +115,9 @@ class Args:
     log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints")
     resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues")
     init_from: str = opt("", "a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)")
+    keep_scales: bool = opt(False, "with --init-from, keep the checkpoint's input and output scales where this run's "
+                                   "data gives others (e.g. more variants of the same scene: the scales only "
+                                   "normalise, so the weights keep their meaning); the difference is recorded")
     accelerator: str = opt("cpu", "Lightning's accelerator; off the CPU, ops without a deterministic kernel warn",
                            ["cpu", "gpu", "auto"])
     ddp: bool = opt(False, "multi-process data parallel (Lightning's DDP strategy) over --devices; --batch-size "
@@ -172,6 +175,8 @@ def parse(argv=None) -> Args:
             "current_model_state" in torch.load(a.resume, map_location="cpu", weights_only=False):
         ap.error(f"--resume: {a.resume} comes from a run with --ema (its state_dict holds the averaged weights, "
                  "the optimiser's own are beside them): resume it with the same --ema")
+    if a.keep_scales and not a.init_from:
+        ap.error("--keep-scales needs --init-from (the checkpoint whose scales it keeps)")
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
@@ -217,33 +222,36 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
 SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_scale")
 
 
-def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str) -> dict:
+def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str,
+               keep_scales: bool = False) -> dict:
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
     schedule; a wider head, stencil or mix of ``model`` is added to them first (:meth:`NodeLSTMSurrogate.widen`), the
     added ring's offset scales from the data, and the neighbours' outputs projected to its ``mix_width``
     (:meth:`NodeLSTMSurrogate.with_mix_width`). The checkpoint's scales must fit this run's data: the same data
     hash, or (regenerated data can differ in its last bits, for example on another machine) the scales this
     data gives within 1e-5, over the variants the checkpoint's own run trained on (with or without
-    --val-fresh, with its --val-tail). Returns the provenance the new checkpoint records (the file's path and
+    --val-fresh, with its --val-tail), unless ``keep_scales`` (their largest relative difference is then recorded
+    as ``scales_off``). Returns the provenance the new checkpoint records (the file's path and
     SHA-256, the command and data hash that made it)."""
     run = meta.get("args", {})
     trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
     fresh = NodeLSTMSurrogate(model.config)  # the scales this run's data gives
     fresh.set_scales(trained, dm.wrench, float(init.length_scale))
     ring = 6 * init.config.stencil  # the offset scales the checkpoint holds; those of a ring it adds are new
+    off = 0.0
     if meta.get("data_hash") != data["meta"]["data_hash"]:
         held = lambda m, k: getattr(m, k)[:, :ring] if k == "rel_scale" else getattr(m, k)  # noqa: E731
         off = max(float(((held(fresh, k) - held(init, k)).abs() / held(init, k).abs()).max()) for k in SCALES)
-        if off > 1e-5:
+        if off > 1e-5 and not keep_scales:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
-                             f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative)")
+                             f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative; --keep-scales keeps the checkpoint's)")
     init = init.widen(model.config.head_hidden, model.config.stencil, model.config.mix)
     if model.config.mix:
         init = init.with_mix_width(model.config.mix_width)
     model.load_state_dict(init.state_dict())
     model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
     return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
-            "data_hash": meta.get("data_hash")}
+            "data_hash": meta.get("data_hash"), "scales_off": off}
 
 
 def evaluate_all(model, task, data: dict, a: Args) -> dict:
@@ -296,7 +304,7 @@ def main(argv=None):
     if init is None:
         model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
     else:  # the starting checkpoint's weights and scales
-        init_from = start_from(model, *init, data, dm, a.init_from)
+        init_from = start_from(model, *init, data, dm, a.init_from, a.keep_scales)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,
                              weight_decay=a.weight_decay, max_epochs=a.epochs, noise=a.noise,
                              step_weighting=a.step_weighting, one_step_weight=a.one_step_weight,

@@ -180,14 +180,18 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     fresh = torch.load(tmp_path / "data" / "semicircle_v3_s1_d0.3.pt", weights_only=False)  # validated on
     assert ft_meta["val_data_hash"] == fresh["meta"]["data_hash"] and ft_meta["args"]["val_seed"] == 1
     assert ft_meta["init_from"]["sha256"] == hashlib.sha256((tmp_path / "ck.pt").read_bytes()).hexdigest()
-    # the chord projection and the mirrors have no weights: a run may add the one and drop the other
-    run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
-                "--rest-anchor", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
-                "--epochs", "1", "--chord-projection", "--out", "cp.pt", "--log-dir", "logs_cp"], tmp_path)
+    # the chord projection and the mirrors have no weights: a run may add the one and drop the other; on other data
+    # (two variants, not three) only with --keep-scales, which keeps the checkpoint's scales and records the gap
+    cp_run = [str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
+              "--variants", "2", "--rest-anchor", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
+              "--epochs", "1", "--chord-projection", "--out", "cp.pt", "--log-dir", "logs_cp"]
+    script_fails(cp_run, tmp_path, "and its scales differ by up to")
+    run_script([*cp_run, "--keep-scales"], tmp_path)
     cp = torch.load(tmp_path / "cp.pt", weights_only=True)["state_dict"]
     assert all(torch.equal(src[k], cp[k]) for k in src)
-    cp_arch = json.loads((tmp_path / "cp.json").read_text())["architecture"]
-    assert cp_arch["chord_projection"] and cp_arch["reflections"] == []
+    cp_meta = json.loads((tmp_path / "cp.json").read_text())
+    assert cp_meta["architecture"]["chord_projection"] and cp_meta["architecture"]["reflections"] == []
+    assert cp_meta["init_from"]["scales_off"] > 1e-5 and cp_meta["data_hash"] != meta["data_hash"]
     # a wider head, stencil and mix (its neighbours' outputs projected) start from the same steps: at lr 0 the same
     # errors, the old weights inside the new, the second ring's offset scales from the data
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
@@ -219,6 +223,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
     for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
+                       (["--keep-scales"], "--keep-scales needs --init-from"),
                        (["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
