@@ -230,9 +230,9 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
     (:meth:`NodeLSTMSurrogate.with_mix_width`). The checkpoint's scales must fit this run's data: the same data
     hash, or (regenerated data can differ in its last bits, for example on another machine) the scales this
     data gives within 1e-5, over the variants the checkpoint's own run trained on (with or without
-    --val-fresh, with its --val-tail), unless ``keep_scales`` (their largest relative difference is then recorded
-    as ``scales_off``). Returns the provenance the new checkpoint records (the file's path and
-    SHA-256, the command and data hash that made it)."""
+    --val-fresh, with its --val-tail), unless ``keep_scales``. Returns the provenance the new checkpoint records
+    (the file's path and SHA-256, the command and data hash that made it, and ``scales_off``, the largest relative
+    difference of those scales: 0 on the same data)."""
     run = meta.get("args", {})
     trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
     fresh = NodeLSTMSurrogate(model.config)  # the scales this run's data gives
@@ -244,7 +244,8 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
         off = max(float(((held(fresh, k) - held(init, k)).abs() / held(init, k).abs()).max()) for k in SCALES)
         if off > 1e-5 and not keep_scales:
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
-                             f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative; --keep-scales keeps the checkpoint's)")
+                             f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative; "
+                             "--keep-scales keeps the checkpoint's)")
     init = init.widen(model.config.head_hidden, model.config.stencil, model.config.mix)
     if model.config.mix:
         init = init.with_mix_width(model.config.mix_width)
