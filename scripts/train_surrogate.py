@@ -89,6 +89,9 @@ class Args:
     time_reversal: bool = opt(False, "also train on every window played backwards (undamped scenes with "
                                      "time-dependent forces only, whose motion is time-reversible), which "
                                      "penalises a step that dissipates energy")
+    printed_repeat: int = opt(1, "the printed scene's training windows (its first 60 %%) appear this many times in "
+                                 "each epoch, so that it keeps its share of the training as --variants grows (the "
+                                 "scales count it once)")
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
     window_weighting: str = opt("uniform", "rollout-loss weights per training window (inverse_motion: 1 / (d^2 + "
@@ -141,6 +144,8 @@ def parse(argv=None) -> Args:
         get_task(a.task).reflections(a.mirror)
     except ValueError as e:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
+    if a.printed_repeat < 1:
+        ap.error(f"--printed-repeat must be >= 1, got {a.printed_repeat}")
     if a.val_fresh < 0 or a.val_stride < 1:
         ap.error(f"--val-fresh must be >= 0 and --val-stride >= 1, got {a.val_fresh} and {a.val_stride}")
     if not 0.0 <= a.val_tail < 0.6:
@@ -299,7 +304,7 @@ def main(argv=None):
         inputs, val_inputs = inputs_of(task, data), inputs_of(task, val_data) if val_data else None
     dm = SurrogateDataModule(data, eta=a.eta, horizon=a.horizon, batch_size=a.batch_size, seed=train_seed,
                              inputs=inputs, val_dataset=val_data, val_stride=a.val_stride, val_inputs=val_inputs,
-                             val_tail=a.val_tail, time_reversal=a.time_reversal)
+                             val_tail=a.val_tail, time_reversal=a.time_reversal, printed_repeat=a.printed_repeat)
     model = build_model(task, a)
     init_from = None
     if init is None:

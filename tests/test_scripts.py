@@ -184,7 +184,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     # (two variants, not three) only with --keep-scales, which keeps the checkpoint's scales and records the gap
     cp_run = [str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
               "--variants", "2", "--rest-anchor", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
-              "--epochs", "1", "--chord-projection", "--out", "cp.pt", "--log-dir", "logs_cp"]
+              "--epochs", "1", "--chord-projection", "--printed-repeat", "2", "--out", "cp.pt", "--log-dir", "logs_cp"]
     script_fails(cp_run, tmp_path, "and its scales differ by up to")
     run_script([*cp_run, "--keep-scales"], tmp_path)
     cp = torch.load(tmp_path / "cp.pt", weights_only=True)["state_dict"]
@@ -192,6 +192,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     cp_meta = json.loads((tmp_path / "cp.json").read_text())
     assert cp_meta["architecture"]["chord_projection"] and cp_meta["architecture"]["reflections"] == []
     assert cp_meta["init_from"]["scales_off"] > 1e-5 and cp_meta["data_hash"] != meta["data_hash"]
+    assert cp_meta["args"]["printed_repeat"] == 2
     # a wider head, stencil and mix (its neighbours' outputs projected) start from the same steps: at lr 0 the same
     # errors, the old weights inside the new, the second ring's offset scales from the data
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
@@ -224,6 +225,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
     for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
                        (["--keep-scales"], "--keep-scales needs --init-from"),
+                       (["--printed-repeat", "0"], "--printed-repeat must be >= 1, got 0"),
                        (["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
                        (["--max-time", "-1"], "--max-time must be >= 0 minutes"),

@@ -142,6 +142,22 @@ def test_validation_tail_of_the_printed_scene(tiny):
         SurrogateDataModule(tiny, eta=2, horizon=2, val_dataset=tiny, val_tail=0.2)
 
 
+def test_the_printed_scene_can_keep_its_share_of_the_training(tiny):
+    """printed_repeat: the printed scene's training windows (variant 0, before the cut) appear that many
+    times in a training epoch; the other variants', validation and the scales' positions do not change."""
+    from cmlearn.surrogate.training import SurrogateDataModule
+    plain = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=4)
+    dm = SurrogateDataModule(tiny, eta=2, horizon=4, batch_size=4, printed_repeat=3)
+    once, thrice = plain.train_dataloader().dataset.index, dm.train_dataloader().dataset.index
+    printed = [w for w in once if w[0] == 0]
+    assert printed and sorted(thrice) == sorted(once + 2 * printed)
+    assert [w for w in thrice if w[0] != 0] == [w for w in once if w[0] != 0]
+    assert dm.val_dataloader().dataset.index == plain.val_dataloader().dataset.index
+    assert all(torch.equal(a, b) for a, b in zip(dm.train_positions(), plain.train_positions()))
+    with pytest.raises(ValueError, match="printed_repeat must be >= 1"):
+        SurrogateDataModule(tiny, eta=2, horizon=4, printed_repeat=0)
+
+
 def test_ellipse_training_loops_leave_out_the_printed_and_held_out_shapes():
     task = get_task("ellipse")
     var = task.variants(task.base_scene(), 40, 0)

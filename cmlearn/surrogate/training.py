@@ -27,13 +27,18 @@ class SurrogateDataModule(L.LightningDataModule):
     trains; validation windows start every ``val_stride`` frames. ``val_tail``: the printed scene's last
     part before the cut validates too (see :func:`split_ranges`). ``inputs`` (and ``val_inputs`` for a
     ``val_dataset``): the per-step inputs of a closed-loop ``wrench_fn``, in every window. ``time_reversal``:
-    the training windows also play backwards (undamped scenes; :class:`RolloutWindows`), validation does not."""
+    the training windows also play backwards (undamped scenes; :class:`RolloutWindows`), validation does not.
+    ``printed_repeat``: the printed scene's training windows appear this many times in each training epoch, so
+    that the one trajectory the thesis trains on keeps its share of the training as variants are added (the
+    scales, computed from :meth:`train_positions`, count it once)."""
 
     def __init__(self, dataset: dict, eta: int, horizon: int, batch_size: int = 64, val_variants: int = 1,
                  num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None,
                  val_dataset: dict | None = None, val_stride: int = 1, val_inputs: torch.Tensor | None = None,
-                 val_tail: float = 0.0, time_reversal: bool = False):
+                 val_tail: float = 0.0, time_reversal: bool = False, printed_repeat: int = 1):
         super().__init__()
+        if printed_repeat < 1:
+            raise ValueError(f"printed_repeat must be >= 1, got {printed_repeat}")
         if val_dataset is not None and val_tail:
             raise ValueError("val_tail and val_dataset: validate on the printed scene's tail or on fresh variants, "
                              "not both")
@@ -60,7 +65,7 @@ class SurrogateDataModule(L.LightningDataModule):
             self.ranges["val"] = [(v, 0, self.val_positions.shape[1] - 1) for v in range(1, vm["n_variants"])]
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
         self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
-        self.time_reversal = time_reversal
+        self.time_reversal, self.printed_repeat = time_reversal, printed_repeat
 
     def train_positions(self, fresh_validation: bool | None = None, val_tail: float = 0.0):
         """Trajectories the scales may be computed from (training ranges only): this module's, or those of
@@ -77,7 +82,10 @@ class SurrogateDataModule(L.LightningDataModule):
             ds = RolloutWindows(self.val_positions, self.val_wrench, self.ranges["val"], self.eta, self.horizon,
                                 self.val_inputs, stride=self.val_stride)
         else:
-            ds = RolloutWindows(self.positions, self.wrench, self.ranges[split], self.eta, self.horizon, self.inputs,
+            ranges = self.ranges[split]
+            if split == "train":  # the printed scene's range (variant 0, always the first) repeated
+                ranges = [ranges[0]] * (self.printed_repeat - 1) + ranges
+            ds = RolloutWindows(self.positions, self.wrench, ranges, self.eta, self.horizon, self.inputs,
                                 time_reversal=self.time_reversal)
         g = torch.Generator().manual_seed(self.seed)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
