@@ -81,12 +81,10 @@ class SurrogateDataModule(L.LightningDataModule):
         if split == "val":
             ds = RolloutWindows(self.val_positions, self.val_wrench, self.ranges["val"], self.eta, self.horizon,
                                 self.val_inputs, stride=self.val_stride)
-        else:
-            ranges = self.ranges[split]
-            if split == "train":  # the printed scene's range (variant 0, always the first) repeated
-                ranges = [ranges[0]] * (self.printed_repeat - 1) + ranges
-            ds = RolloutWindows(self.positions, self.wrench, ranges, self.eta, self.horizon, self.inputs,
-                                time_reversal=self.time_reversal)
+        else:  # training: the printed scene's range (variant 0, always the first) printed_repeat times
+            train = self.ranges["train"]
+            ds = RolloutWindows(self.positions, self.wrench, [train[0]] * (self.printed_repeat - 1) + train, self.eta,
+                                self.horizon, self.inputs, time_reversal=self.time_reversal)
         g = torch.Generator().manual_seed(self.seed)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
                           num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
