@@ -30,7 +30,7 @@ import cmlearn
 from cmlearn.data import TASKS, cached_dataset, get_task
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
-from cmlearn.surrogate.evaluate import evaluate_scenes
+from cmlearn.surrogate.evaluate import evaluate_scenes, recorded_check
 
 
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
@@ -367,15 +367,7 @@ def main(argv=None):
             "metrics": metrics, "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
             "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "world_size": trainer.world_size,
             "train_wall_s": t_train, "data_wall_s": t_data, "init_from": init_from}
-    from cmlearn.surrogate import Surrogate, SurrogateDivergence
-    from cmlearn.surrogate.evaluate import short_check
-    # 50 surrogate steps: short enough that even an unstable rollout is reproducible bit for bit
-    try:
-        meta["check"] = short_check(Surrogate(model, meta), task.scene, min(50 * task.delta, a.duration or 1.0),
-                                    a.data_dir)
-    except SurrogateDivergence as e:  # still written, for study; it cannot pass as a shipped checkpoint
-        meta["check"] = {"diverged": str(e)}
-        print(f"warning: {e}", file=sys.stderr)
+    meta["check"] = recorded_check(model, meta, a.duration, a.data_dir)
     out = Path(a.out or f"checkpoints/{task.name}.pt")
     save_checkpoint(out, model, meta)
     print(f"wrote {out}")

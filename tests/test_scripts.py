@@ -686,3 +686,44 @@ def test_training_fit_report_splits_windows_by_what_was_trained_on(tmp_path):
     script_fails([str(ROOT / "scripts/report_training_fit.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt")],
                  tmp_path, "has its own evaluation")
     script_fails([str(ROOT / "scripts/report_training_fit.py"), ck, "--variants", "1"], tmp_path, "--variants")
+
+
+def test_refine_surrogate_lowers_the_rollout_loss_on_its_fixed_windows(tmp_path):
+    """Full-batch L-BFGS: the written model's rollout loss on the run's windows is the best one the run reports,
+    below the starting model's; the checkpoint records where it came from; other data, a task with its own
+    evaluation and bad counts are refused."""
+    from torch.utils.data import default_collate
+
+    from cmlearn.data import load_dataset
+    from cmlearn.data.windows import RolloutWindows
+    from cmlearn.surrogate import load_checkpoint
+    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
+    ck = str(ROOT / "checkpoints" / "semicircle_fast.pt")
+    args = [str(ROOT / "scripts/refine_surrogate.py"), ck, "--variants", "3", "--duration", "0.3", "--data-dir",
+            str(tmp_path), "--windows", "30", "--horizon", "4", "--chunk", "8", "--max-evals", "4"]
+    res = run_script(args + ["--keep-scales", "--out", "ref.pt"], tmp_path)
+    assert res["loss_best"] < 0.9 * res["loss_start"]
+    assert res["evaluations"] == 4 and res["stop"] == "--max-evals 4 reached"
+    model, meta = load_checkpoint(tmp_path / "ref.pt")
+    start, _ = load_checkpoint(ck)
+    assert meta["init_from"]["sha256"] == hashlib.sha256(Path(ck).read_bytes()).hexdigest()
+    assert meta["refine"]["windows"] == 30 and meta["command"].startswith("python scripts/refine_surrogate.py")
+    assert meta["metrics"] == res["metrics"] and meta["check"]["max_err_mm"] > 0
+    data = load_dataset(next(tmp_path.glob("semicircle_v3_*.pt")))
+    dm = SurrogateDataModule(data, eta=2, horizon=4)
+    train = dm.ranges["train"]
+    ds = RolloutWindows(dm.positions, dm.wrench, train, 2, 4)
+    printed = len(RolloutWindows(dm.positions, dm.wrench, train[:1], 2, 4))
+    idx = load_script("refine_surrogate").fixed_windows(ds, printed, 30, 1)
+    assert len(set(idx)) == 30 and idx[:printed] == list(range(printed)) and min(idx[printed:]) >= printed
+    batch = default_collate([ds[i] for i in idx])
+
+    def loss(m):
+        with torch.no_grad():
+            return float(SurrogateModule(m.train(), horizon=4).rollout_loss(batch, 4)[0])
+    assert loss(model) == pytest.approx(res["loss_best"], rel=1e-4)
+    assert loss(start) == pytest.approx(res["loss_start"], rel=1e-4)
+    script_fails(args + ["--out", "x.pt"], tmp_path, "--variants/--seed")
+    script_fails([str(ROOT / "scripts/refine_surrogate.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt"),
+                  "--out", "x.pt"], tmp_path, "position tasks only")
+    script_fails(args + ["--windows", "0", "--out", "x.pt"], tmp_path, "--windows")

@@ -165,3 +165,20 @@ def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict
     slot = interest_slots(task, scene)[0]
     return {"scene": scene_name, "duration": duration,
             "max_err_mm": float((pred[:, slot].double() - ref[:, slot].double()).abs().max()) * 1e3}
+
+
+def recorded_check(model, meta: dict, duration: float | None = None, data_dir=None) -> dict:
+    """The :func:`short_check` a checkpoint records, for ``model`` with metadata ``meta``: 50 surrogate steps of
+    the task's printed scene (at most ``duration`` seconds), short enough that even an unstable rollout is
+    reproducible bit for bit; ``{"diverged": message}`` (and a warning) where the rollout runs away, so that the
+    checkpoint is still written for study but cannot pass as a shipped one."""
+    import sys
+
+    from cmlearn.surrogate.engine import Surrogate, SurrogateDivergence
+    engine = Surrogate(model, meta)
+    try:
+        return short_check(engine, engine.task.scene, min(50 * engine.task.delta, duration or 1.0), data_dir)
+    except SurrogateDivergence as e:
+        print(f"warning: {e}", file=sys.stderr)
+        return {"diverged": str(e)}
+

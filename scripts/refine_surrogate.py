@@ -1,0 +1,165 @@
+"""Refine a trained surrogate checkpoint by full-batch L-BFGS on a fixed set of its training windows.
+
+    python scripts/refine_surrogate.py checkpoints/semicircle.pt --variants 96 --windows 1024 --max-time 72 \
+        --out runs/semi_lbfgs.pt
+
+Training (``train_surrogate.py``) draws a new mini-batch of windows at every Adam step. This instead takes the
+model's own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--horizon`` steps, no training noise) over
+``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest drawn
+with ``--window-seed``) and minimises it with ``torch.optim.LBFGS`` (strong Wolfe line search), the gradient summed
+over chunks of ``--chunk`` windows. The weights with the lowest loss seen are kept (``--max-time`` may stop the run
+inside a line search). The checkpoint's scales are kept. The data must be the checkpoint's
+own: the same hash, or, with ``--keep-scales``, any data of its task. The refined model is evaluated as
+``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes) and written with the
+checkpoint's metadata, its new metrics, this command and ``init_from`` (the starting file's path, SHA-256, command
+and data hash). Position tasks only. Ends with one JSON line.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import hashlib
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.data import default_collate
+
+from cmlearn.data import cached_dataset, get_task
+from cmlearn.data.windows import RolloutWindows
+from cmlearn.surrogate import load_checkpoint, save_checkpoint
+from cmlearn.surrogate.evaluate import evaluate_scenes, recorded_check
+
+
+def parse(argv=None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("checkpoint", help="the surrogate checkpoint (.pt) to refine")
+    ap.add_argument("--variants", type=int, default=96, help="variants of the checkpoint's training data")
+    ap.add_argument("--seed", type=int, default=0, help="the data's seed")
+    ap.add_argument("--data-dir", default="data", help="where the LGVI runs are cached")
+    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's own)")
+    ap.add_argument("--keep-scales", action="store_true", help="accept data other than the checkpoint's own")
+    ap.add_argument("--windows", type=int, default=1024, help="fixed training windows the loss sums over")
+    ap.add_argument("--window-seed", type=int, default=1, help="seed of the windows' draw")
+    ap.add_argument("--horizon", type=int, default=96, help="rollout steps of each window")
+    ap.add_argument("--max-evals", type=int, default=200, help="loss evaluations at most")
+    ap.add_argument("--history", type=int, default=20, help="L-BFGS history size")
+    ap.add_argument("--chunk", type=int, default=128, help="windows per forward and backward pass")
+    ap.add_argument("--max-time", type=float, default=0.0, help="minutes of refinement at most (0: no limit)")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--out", required=True, help="the refined checkpoint (.pt)")
+    a = ap.parse_args(argv)
+    for name in ("variants", "windows", "horizon", "max_evals", "history", "chunk", "threads"):
+        if getattr(a, name) < 1:
+            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
+    if a.max_time < 0 or a.duration < 0:
+        ap.error("--max-time and --duration must be >= 0")
+    return a
+
+
+def fixed_windows(ds: RolloutWindows, printed: int, n: int, seed: int) -> list[int]:
+    """Every one of the first ``printed`` windows (the printed scene's) and ``n - printed`` others drawn without
+    replacement (all the windows where ``n`` covers them)."""
+    g = torch.Generator().manual_seed(seed)
+    others = (torch.randperm(len(ds) - printed, generator=g)[:max(0, n - printed)] + printed).tolist()
+    return list(range(min(printed, n))) + others
+
+
+class _Budget(Exception):
+    pass
+
+
+def main(argv=None) -> dict:
+    a = parse(argv)
+    from cmlearn.surrogate.training import SurrogateDataModule, SurrogateModule
+    torch.set_num_threads(a.threads)
+    model, meta = load_checkpoint(a.checkpoint)
+    task = get_task(meta["task"])
+    if task.custom:
+        raise SystemExit(f"{a.checkpoint}: task {task.name!r} has its own evaluation; refine_surrogate.py takes "
+                         "position tasks only")
+    data = cached_dataset(task, a.variants, a.seed, a.data_dir, a.duration or None)
+    if data["meta"]["data_hash"] != meta.get("data_hash") and not a.keep_scales:
+        raise SystemExit(f"--variants/--seed: {a.checkpoint} was trained on data {meta.get('data_hash')}, these are "
+                         f"{data['meta']['data_hash']} (--keep-scales refines on them all the same)")
+    eta = model.config.eta
+    dm = SurrogateDataModule(data, eta=eta, horizon=a.horizon)
+    train = dm.ranges["train"]
+    ds = RolloutWindows(dm.positions, dm.wrench, train, eta, a.horizon)
+    printed = len(RolloutWindows(dm.positions, dm.wrench, train[:1], eta, a.horizon))
+    idx = fixed_windows(ds, printed, a.windows, a.window_seed)
+    batch = default_collate([ds[i] for i in idx])
+    chunks = [tuple(t[i:i + a.chunk] for t in batch) for i in range(0, len(idx), a.chunk)]
+    model.train()
+    module = SurrogateModule(model, horizon=a.horizon)
+
+    def loss_and_grad() -> float:
+        total = 0.0
+        for c in chunks:
+            loss = module.rollout_loss(c, a.horizon)[0] * (c[0].shape[0] / len(idx))
+            loss.backward()
+            total += float(loss.detach())
+        return total
+
+    # the closure stops the run at --max-evals (or --max-time), so that a run is reproduced evaluation for evaluation
+    opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=10 * a.max_evals, max_eval=10 * a.max_evals,
+                            history_size=a.history, line_search_fn="strong_wolfe", tolerance_grad=0.0,
+                            tolerance_change=0.0)
+    t0 = time.perf_counter()
+    trace, best = [], {"loss": float("inf"), "state": None}
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_and_grad()
+        trace.append(loss)
+        if loss < best["loss"]:
+            best["loss"], best["state"] = loss, copy.deepcopy(model.state_dict())
+        print(f"eval {len(trace)}: loss {loss:.4g} (best {best['loss']:.4g}), {time.perf_counter() - t0:.0f} s",
+              flush=True)
+        if not torch.isfinite(torch.tensor(loss)):
+            raise _Budget(f"the rollout ran away at evaluation {len(trace)}")
+        if len(trace) >= a.max_evals:
+            raise _Budget(f"--max-evals {a.max_evals} reached")
+        if a.max_time and time.perf_counter() - t0 > a.max_time * 60:
+            raise _Budget(f"--max-time {a.max_time} min reached at evaluation {len(trace)}")
+        return torch.tensor(loss)
+
+    stop = "L-BFGS stopped on its own"
+    try:
+        opt.step(closure)
+    except _Budget as e:
+        stop = str(e)
+    if best["state"] is None:
+        raise SystemExit(f"{a.checkpoint}: the starting rollout loss is not finite on these windows")
+    model.load_state_dict(best["state"])
+    wall = time.perf_counter() - t0
+    model = model.cpu().float().eval()
+    metrics = evaluate_scenes(model, task, data, a.duration or None, a.data_dir)
+    cmd = "python scripts/refine_surrogate.py " + " ".join(
+        shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
+    out = dict(meta)
+    out.update(metrics=metrics, command=cmd, data_hash=data["meta"]["data_hash"], train_wall_s=wall,
+               init_from={"path": a.checkpoint, "sha256": hashlib.sha256(Path(a.checkpoint).read_bytes()).hexdigest(),
+                          "command": meta.get("command"), "data_hash": meta.get("data_hash")},
+               refine={"windows": len(idx), "printed_windows": min(printed, len(idx)), "horizon": a.horizon,
+                       "evaluations": len(trace), "loss_start": trace[0], "loss_best": best["loss"], "stop": stop})
+    out["check"] = recorded_check(model, out, a.duration, a.data_dir)
+    save_checkpoint(a.out, model, out)
+    print(f"wrote {a.out}: loss {trace[0]:.4g} -> {best['loss']:.4g} in {len(trace)} evaluations, {wall:.0f} s "
+          f"({stop})")
+    for case, m in metrics.items():
+        e = m["free_running"]["node"]
+        print(f"  {case:28s} free-running " + "  ".join(
+            f"{ax}: {e[ax]['max_mm']:.2f}/{e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
+    res = {"checkpoint": a.out, "loss_start": trace[0], "loss_best": best["loss"], "evaluations": len(trace),
+           "wall_s": wall, "stop": stop, "metrics": metrics}
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()
