@@ -181,4 +181,3 @@ def recorded_check(model, meta: dict, duration: float | None = None, data_dir=No
     except SurrogateDivergence as e:
         print(f"warning: {e}", file=sys.stderr)
         return {"diverged": str(e)}
-
