@@ -88,9 +88,8 @@ def main(argv=None) -> dict:
                          f"{data['meta']['data_hash']} (--keep-scales refines on them all the same)")
     eta = model.config.eta
     dm = SurrogateDataModule(data, eta=eta, horizon=a.horizon)
-    train = dm.ranges["train"]
-    ds = RolloutWindows(dm.positions, dm.wrench, train, eta, a.horizon)
-    printed = len(RolloutWindows(dm.positions, dm.wrench, train[:1], eta, a.horizon))
+    ds = RolloutWindows(dm.positions, dm.wrench, dm.ranges["train"], eta, a.horizon)
+    printed = sum(v == 0 for v, _, _ in ds.index)  # the printed scene's windows (variant 0, the first range)
     idx = fixed_windows(ds, printed, a.windows, a.window_seed)
     batch = default_collate([ds[i] for i in idx])
     chunks = [tuple(t[i:i + a.chunk] for t in batch) for i in range(0, len(idx), a.chunk)]
@@ -137,7 +136,7 @@ def main(argv=None) -> dict:
         raise SystemExit(f"{a.checkpoint}: the starting rollout loss is not finite on these windows")
     model.load_state_dict(best["state"])
     wall = time.perf_counter() - t0
-    model = model.cpu().float().eval()
+    model.eval()  # load_checkpoint gave it on the CPU in float32
     metrics = evaluate_scenes(model, task, data, a.duration or None, a.data_dir)
     cmd = "python scripts/refine_surrogate.py " + " ".join(
         shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
