@@ -6,7 +6,8 @@
 Training (``train_surrogate.py``) draws a new mini-batch of windows at every Adam step. This instead takes the
 model's own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--horizon`` steps, no training noise) over
 ``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest drawn
-with ``--window-seed``) and minimises it with ``torch.optim.LBFGS`` (strong Wolfe line search), the gradient summed
+with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean) and minimises it with
+``torch.optim.LBFGS`` (strong Wolfe line search), the gradient summed
 over chunks of ``--chunk`` windows. The weights with the lowest loss seen are kept (``--max-time`` may stop the run
 inside a line search). The checkpoint's scales are kept. The data must be the checkpoint's
 own: the same hash, or, with ``--keep-scales``, any data of its task. The refined model is evaluated as
@@ -45,6 +46,8 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--keep-scales", action="store_true", help="accept data other than the checkpoint's own")
     ap.add_argument("--windows", type=int, default=1024, help="fixed training windows the loss sums over")
     ap.add_argument("--window-seed", type=int, default=1, help="seed of the windows' draw")
+    ap.add_argument("--printed-weight", type=float, default=1.0,
+                    help="weight of each printed-scene window in the loss's mean (the others weigh 1)")
     ap.add_argument("--horizon", type=int, default=96, help="rollout steps of each window")
     ap.add_argument("--max-evals", type=int, default=200, help="loss evaluations at most")
     ap.add_argument("--history", type=int, default=20, help="L-BFGS history size")
@@ -58,6 +61,8 @@ def parse(argv=None) -> argparse.Namespace:
             ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
     if a.max_time < 0 or a.duration < 0:
         ap.error("--max-time and --duration must be >= 0")
+    if not a.printed_weight > 0:
+        ap.error(f"--printed-weight must be > 0, got {a.printed_weight}")
     return a
 
 
@@ -91,15 +96,21 @@ def main(argv=None) -> dict:
     ds = RolloutWindows(dm.positions, dm.wrench, dm.ranges["train"], eta, a.horizon)
     printed = sum(v == 0 for v, _, _ in ds.index)  # the printed scene's windows (variant 0, the first range)
     idx = fixed_windows(ds, printed, a.windows, a.window_seed)
+    n_printed = min(printed, len(idx))
     batch = default_collate([ds[i] for i in idx])
-    chunks = [tuple(t[i:i + a.chunk] for t in batch) for i in range(0, len(idx), a.chunk)]
+    # the printed windows (the first n_printed) in chunks of their own, so that each chunk has one weight
+    bounds = [(i, min(i + a.chunk, n_printed)) for i in range(0, n_printed, a.chunk)]
+    bounds += [(i, min(i + a.chunk, len(idx))) for i in range(n_printed, len(idx), a.chunk)]
+    chunks = [(tuple(t[i:j] for t in batch), (j - i) * (a.printed_weight if i < n_printed else 1.0))
+              for i, j in bounds]
+    total_weight = n_printed * a.printed_weight + len(idx) - n_printed
     model.train()
     module = SurrogateModule(model, horizon=a.horizon)
 
     def loss_and_grad() -> float:
         total = 0.0
-        for c in chunks:
-            loss = module.rollout_loss(c, a.horizon)[0] * (c[0].shape[0] / len(idx))
+        for c, weight in chunks:
+            loss = module.rollout_loss(c, a.horizon)[0] * (weight / total_weight)
             loss.backward()
             total += float(loss.detach())
         return total
@@ -144,7 +155,8 @@ def main(argv=None) -> dict:
     out.update(metrics=metrics, command=cmd, data_hash=data["meta"]["data_hash"], train_wall_s=wall,
                init_from={"path": a.checkpoint, "sha256": hashlib.sha256(Path(a.checkpoint).read_bytes()).hexdigest(),
                           "command": meta.get("command"), "data_hash": meta.get("data_hash")},
-               refine={"windows": len(idx), "printed_windows": min(printed, len(idx)), "horizon": a.horizon,
+               refine={"windows": len(idx), "printed_windows": n_printed,
+                       "printed_weight": a.printed_weight, "horizon": a.horizon,
                        "evaluations": len(trace), "loss_start": trace[0], "loss_best": best["loss"], "stop": stop})
     out["check"] = recorded_check(model, out, a.duration, a.data_dir)
     save_checkpoint(a.out, model, out)
