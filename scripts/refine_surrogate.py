@@ -6,7 +6,8 @@
 Training (``train_surrogate.py``) draws a new mini-batch of windows at every Adam step. This instead takes the
 model's own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--horizon`` steps, no training noise) over
 ``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest drawn
-with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean) and minimises it with
+with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean, ``--node-weight`` the
+scene's node of interest among the modelled nodes) and minimises it with
 ``torch.optim.LBFGS`` (strong Wolfe line search), the gradient summed
 over chunks of ``--chunk`` windows. The weights with the lowest loss seen are kept (``--max-time`` may stop the run
 inside a line search). The checkpoint's scales are kept. The data must be the checkpoint's
@@ -32,7 +33,7 @@ from torch.utils.data import default_collate
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
-from cmlearn.surrogate.evaluate import evaluate_scenes, recorded_check
+from cmlearn.surrogate.evaluate import evaluate_scenes, interest_slots, recorded_check
 
 
 def parse(argv=None) -> argparse.Namespace:
@@ -48,6 +49,9 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--window-seed", type=int, default=1, help="seed of the windows' draw")
     ap.add_argument("--printed-weight", type=float, default=1.0,
                     help="weight of each printed-scene window in the loss's mean (the others weigh 1)")
+    ap.add_argument("--node-weight", type=float, default=1.0,
+                    help="weight of the printed scene's node of interest in the loss's mean over the modelled nodes "
+                         "(the others weigh 1)")
     ap.add_argument("--horizon", type=int, default=96, help="rollout steps of each window")
     ap.add_argument("--max-evals", type=int, default=200, help="loss evaluations at most")
     ap.add_argument("--history", type=int, default=20, help="L-BFGS history size")
@@ -61,8 +65,9 @@ def parse(argv=None) -> argparse.Namespace:
             ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
     if a.max_time < 0 or a.duration < 0:
         ap.error("--max-time and --duration must be >= 0")
-    if not a.printed_weight > 0:
-        ap.error(f"--printed-weight must be > 0, got {a.printed_weight}")
+    for name in ("printed_weight", "node_weight"):
+        if not getattr(a, name) > 0:
+            ap.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(a, name)}")
     return a
 
 
@@ -104,13 +109,15 @@ def main(argv=None) -> dict:
     chunks = [(tuple(t[i:j] for t in batch), (j - i) * (a.printed_weight if i < n_printed else 1.0))
               for i, j in bounds]
     total_weight = n_printed * a.printed_weight + len(idx) - n_printed
+    node_weights = torch.ones(len(model.config.modeled))
+    node_weights[list(model.config.modeled).index(interest_slots(task, task.base_scene())[0])] = a.node_weight
     model.train()
     module = SurrogateModule(model, horizon=a.horizon)
 
     def loss_and_grad() -> float:
         total = 0.0
         for c, weight in chunks:
-            loss = module.rollout_loss(c, a.horizon)[0] * (weight / total_weight)
+            loss = module.rollout_loss(c, a.horizon, node_weights=node_weights)[0] * (weight / total_weight)
             loss.backward()
             total += float(loss.detach())
         return total
@@ -156,7 +163,7 @@ def main(argv=None) -> dict:
                init_from={"path": a.checkpoint, "sha256": hashlib.sha256(Path(a.checkpoint).read_bytes()).hexdigest(),
                           "command": meta.get("command"), "data_hash": meta.get("data_hash")},
                refine={"windows": len(idx), "printed_windows": n_printed,
-                       "printed_weight": a.printed_weight, "horizon": a.horizon,
+                       "printed_weight": a.printed_weight, "node_weight": a.node_weight, "horizon": a.horizon,
                        "evaluations": len(trace), "loss_start": trace[0], "loss_best": best["loss"], "stop": stop})
     out["check"] = recorded_check(model, out, a.duration, a.data_dir)
     save_checkpoint(a.out, model, out)

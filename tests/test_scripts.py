@@ -723,15 +723,27 @@ def test_refine_surrogate_lowers_the_rollout_loss_on_its_fixed_windows(tmp_path)
             return float(SurrogateModule(m.train(), horizon=4).rollout_loss([t[part] for t in batch], 4)[0])
     assert loss(model) == pytest.approx(res["loss_best"], rel=1e-4)
     assert loss(start) == pytest.approx(res["loss_start"], rel=1e-4)
-    # --printed-weight 5: each printed window counts five times in the mean
-    weighted = run_script(args[:-1] + ["1", "--printed-weight", "5", "--keep-scales", "--out", "w.pt"], tmp_path)
+    # --printed-weight 5: each printed window counts five times in the mean; --node-weight 3: node 51 (the
+    # headline, index 50) three times among the modelled nodes
+    weighted = run_script(args[:-1] + ["1", "--printed-weight", "5", "--node-weight", "3", "--keep-scales",
+                                       "--out", "w.pt"], tmp_path)
+    w = torch.ones(len(start.config.modeled))
+    w[list(start.config.modeled).index(list(meta["tracked"]).index(50))] = 3.0
+
+    def node_loss(part):
+        b = [t[part] for t in batch]
+        with torch.no_grad():
+            pred = SurrogateModule(start.train(), horizon=4).rollout_loss(b, 4)[1]
+        e2 = ((pred[:, :, start.idx_modeled] - b[1][:, :4, start.idx_modeled]) / start.a_scale.mean()).pow(2)
+        return float((e2.mean((0, 1, 3)) * w).sum() / w.sum())
     n = 30 - printed
-    expect = ((5 * printed * loss(start, slice(None, printed)) + n * loss(start, slice(printed, None)))
-              / (5 * printed + n))
+    expect = (5 * printed * node_loss(slice(None, printed)) + n * node_loss(slice(printed, None))) / (5 * printed + n)
     assert weighted["loss_start"] == pytest.approx(expect, rel=1e-4)
     assert abs(weighted["loss_start"] - res["loss_start"]) > 1e-3 * res["loss_start"]
     assert load_checkpoint(tmp_path / "w.pt")[1]["refine"]["printed_weight"] == 5
-    script_fails(args + ["--printed-weight", "0", "--out", "x.pt"], tmp_path, "--printed-weight")
+    assert load_checkpoint(tmp_path / "w.pt")[1]["refine"]["node_weight"] == 3
+    for flag in ("--printed-weight", "--node-weight"):
+        script_fails(args + [flag, "0", "--out", "x.pt"], tmp_path, flag)
     script_fails(args + ["--out", "x.pt"], tmp_path, "--variants/--seed")
     script_fails([str(ROOT / "scripts/refine_surrogate.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt"),
                   "--out", "x.pt"], tmp_path, "position tasks only")

@@ -136,7 +136,7 @@ class SurrogateModule(L.LightningModule):
         return max(1, int(round(frac * self.horizon)))
 
     def rollout_loss(self, batch, horizon: int, weighting: str = "uniform", wrench_fn=None,
-                     window_weighting: str = "uniform"):
+                     window_weighting: str = "uniform", node_weights: torch.Tensor | None = None):
         """Mean squared rollout error over ``horizon`` steps. ``inverse_square`` divides the error at
         step h by h: a bias in the predicted second difference grows as h^2 along a rollout, so
         uniform weights let the last steps' drift dominate the loss and the fit of each single step
@@ -147,7 +147,8 @@ class SurrogateModule(L.LightningModule):
         weight grows as the load squared), so a small load's vibration, the printed Simulation III pulse's,
         hardly counts; relative to its motion, every window weighs about alike.
         Closed loop (the module's ``wrench_fn``, or the ``wrench_fn`` given here, and a batch with inputs):
-        each step's wrench from the last frame."""
+        each step's wrench from the last frame. ``node_weights`` (one per modelled node) weigh the nodes' squared
+        errors in the mean (divided by their mean, so that weights of one give the plain mean)."""
         hist, future, wrench, ref = batch[:4]
         m = self.model
         idx = m.idx_modeled
@@ -159,6 +160,8 @@ class SurrogateModule(L.LightningModule):
         err = self.scaled_error(pred[:, :, idx], future[:, :horizon, idx])
         if weighting == "inverse_square":
             err = err / torch.arange(1, horizon + 1, dtype=err.dtype, device=err.device)[:, None, None]
+        if node_weights is not None:
+            err = err * (node_weights / node_weights.mean()).sqrt()[:, None]
         if window_weighting == "inverse_motion":
             frames = torch.cat([hist, future[:, :horizon]], 1)[:, :, idx]
             d2 = (frames - ref[:, None, idx]).pow(2).mean((1, 2, 3))
