@@ -7,9 +7,8 @@ Training (``train_surrogate.py``) draws a new mini-batch of windows at every Ada
 model's own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--horizon`` steps, no training noise) over
 ``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest drawn
 with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean, ``--node-weight`` the
-scene's node of interest among the modelled nodes) and minimises it with
-``torch.optim.LBFGS`` (strong Wolfe line search), the gradient summed
-over chunks of ``--chunk`` windows. The weights with the lowest loss seen are kept (``--max-time`` may stop the run
+scene's node of interest among the modelled nodes) and minimises it with ``torch.optim.LBFGS`` (strong Wolfe line
+search), the gradient summed over chunks of ``--chunk`` windows. The weights with the lowest loss seen are kept (``--max-time`` may stop the run
 inside a line search). The checkpoint's scales are kept. The data must be the checkpoint's
 own: the same hash, or, with ``--keep-scales``, any data of its task. The refined model is evaluated as
 ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes) and written with the

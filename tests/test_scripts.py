@@ -690,8 +690,8 @@ def test_training_fit_report_splits_windows_by_what_was_trained_on(tmp_path):
 
 def test_refine_surrogate_lowers_the_rollout_loss_on_its_fixed_windows(tmp_path):
     """Full-batch L-BFGS: the written model's rollout loss on the run's windows is the best one the run reports,
-    below the starting model's; ``--printed-weight`` weighs the printed windows in that mean; the checkpoint records
-    where it came from; other data, a task with its own evaluation and bad counts are refused."""
+    below the starting model's; ``--printed-weight`` and ``--node-weight`` weigh the printed windows and the node of
+    interest in that mean; the checkpoint records where it came from; other data, a task with its own evaluation and bad counts are refused."""
     from torch.utils.data import default_collate
 
     from cmlearn.data import load_dataset
@@ -718,9 +718,9 @@ def test_refine_surrogate_lowers_the_rollout_loss_on_its_fixed_windows(tmp_path)
     assert len(set(idx)) == 30 and idx[:printed] == list(range(printed)) and min(idx[printed:]) >= printed
     batch = default_collate([ds[i] for i in idx])
 
-    def loss(m, part=slice(None)):
+    def loss(m):
         with torch.no_grad():
-            return float(SurrogateModule(m.train(), horizon=4).rollout_loss([t[part] for t in batch], 4)[0])
+            return float(SurrogateModule(m.train(), horizon=4).rollout_loss(batch, 4)[0])
     assert loss(model) == pytest.approx(res["loss_best"], rel=1e-4)
     assert loss(start) == pytest.approx(res["loss_start"], rel=1e-4)
     # --printed-weight 5: each printed window counts five times in the mean; --node-weight 3: node 51 (the
@@ -740,8 +740,8 @@ def test_refine_surrogate_lowers_the_rollout_loss_on_its_fixed_windows(tmp_path)
     expect = (5 * printed * node_loss(slice(None, printed)) + n * node_loss(slice(printed, None))) / (5 * printed + n)
     assert weighted["loss_start"] == pytest.approx(expect, rel=1e-4)
     assert abs(weighted["loss_start"] - res["loss_start"]) > 1e-3 * res["loss_start"]
-    assert load_checkpoint(tmp_path / "w.pt")[1]["refine"]["printed_weight"] == 5
-    assert load_checkpoint(tmp_path / "w.pt")[1]["refine"]["node_weight"] == 3
+    refine = load_checkpoint(tmp_path / "w.pt")[1]["refine"]
+    assert refine["printed_weight"] == 5 and refine["node_weight"] == 3
     for flag in ("--printed-weight", "--node-weight"):
         script_fails(args + [flag, "0", "--out", "x.pt"], tmp_path, flag)
     script_fails(args + ["--out", "x.pt"], tmp_path, "--variants/--seed")
