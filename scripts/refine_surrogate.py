@@ -19,12 +19,10 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import json
 import shlex
 import sys
 import time
-from pathlib import Path
 
 import torch
 from torch.utils.data import default_collate
@@ -32,6 +30,7 @@ from torch.utils.data import default_collate
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
+from cmlearn.surrogate.checkpoint import provenance
 from cmlearn.surrogate.evaluate import evaluate_scenes, interest_slots, recorded_check
 
 
@@ -159,8 +158,7 @@ def main(argv=None) -> dict:
         shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
     out = dict(meta)
     out.update(metrics=metrics, command=cmd, data_hash=data["meta"]["data_hash"], train_wall_s=wall,
-               init_from={"path": a.checkpoint, "sha256": hashlib.sha256(Path(a.checkpoint).read_bytes()).hexdigest(),
-                          "command": meta.get("command"), "data_hash": meta.get("data_hash")},
+               init_from=provenance(a.checkpoint, meta),
                refine={"windows": len(idx), "printed_windows": n_printed,
                        "printed_weight": a.printed_weight, "node_weight": a.node_weight, "horizon": a.horizon,
                        "evaluations": len(trace), "loss_start": trace[0], "loss_best": best["loss"], "stop": stop})

@@ -16,7 +16,6 @@ the metrics and this exact command. Prints one JSON line last.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shlex
 import sys
@@ -30,6 +29,7 @@ import cmlearn
 from cmlearn.data import TASKS, cached_dataset, get_task
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
+from cmlearn.surrogate.checkpoint import provenance
 from cmlearn.surrogate.evaluate import evaluate_scenes, recorded_check
 
 
@@ -256,8 +256,7 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
         init = init.with_mix_width(model.config.mix_width)
     model.load_state_dict(init.state_dict())
     model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
-    return {"path": path, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "command": meta.get("command"),
-            "data_hash": meta.get("data_hash"), "scales_off": off}
+    return {**provenance(path, meta), "scales_off": off}
 
 
 def evaluate_all(model, task, data: dict, a: Args) -> dict:

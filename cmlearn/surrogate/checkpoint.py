@@ -9,6 +9,7 @@ with a JSON copy of ``meta`` next to it (``<name>.json``) for humans and tools.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import torch
 from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
-__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "surrogate_checkpoints"]
+__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "surrogate_checkpoints", "provenance"]
 
 FORMAT = "cmlearn-surrogate/1"
 _CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
@@ -66,6 +67,13 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     except (TypeError, ValueError, RuntimeError, KeyError) as e:
         raise CheckpointError(f"{path}: weights do not match the stored configuration ({str(e)[:200]})") from None
     return model.eval(), meta
+
+
+def provenance(path: str | Path, meta: dict) -> dict:
+    """What a checkpoint made from the checkpoint at ``path`` (metadata ``meta``) records as its ``init_from``: the
+    file's path and SHA-256, and the command and data hash that made it."""
+    return {"path": str(path), "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+            "command": meta.get("command"), "data_hash": meta.get("data_hash")}
 
 
 def surrogate_checkpoints(folder: str | Path) -> list[Path]:
