@@ -21,35 +21,14 @@ import json
 import torch
 
 from cmlearn.data import cached_dataset, get_task
-from cmlearn.data.windows import node_wrench
-from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
-from cmlearn.surrogate.evaluate import from_rest, interest_slots
+from cmlearn.surrogate.evaluate import fresh_errors, fresh_score
 
 
 def variant_info(info) -> object:
     """The generator's description of the fresh variants (variant 0's left out)."""
     return {k: v[1:] for k, v in info.items()} if isinstance(info, dict) else info[1:]
-
-
-@torch.no_grad()
-def variant_errors(model, task, data: dict) -> list[dict]:
-    """Free-running errors of the node of interest on each variant but the first, from rest."""
-    meta, eta = data["meta"], model.config.eta
-    slot = interest_slots(task, task.base_scene())[0]
-    wrench = node_wrench(data["wrench"], meta["wrench_nodes"], meta["modeled"]).float()
-    starts = [from_rest(p, w, eta) for p, w in zip(data["positions"][1:].float(), wrench[1:])]
-    pos, wr = torch.stack([p for p, _ in starts]), torch.stack([w for _, w in starts])
-    pred = model.rollout(pos[:, :eta + 1], wr[:, eta:], pos[:, 0], anchors=pos[:, eta + 1:])
-    ref = pos[:, eta + 1:]
-    return [axis_errors(pred[v, :, slot].double(), ref[v, :, slot].double(), meta["rod_length"])
-            for v in range(pred.shape[0])]
-
-
-def score(errors: list[dict]) -> float:
-    """Mean over the variants of the largest axis's max error (mm)."""
-    return sum(max(e[ax]["max_mm"] for ax in "xyz") for e in errors) / len(errors)
 
 
 def main(argv=None) -> dict:
@@ -84,8 +63,8 @@ def main(argv=None) -> dict:
     data = cached_dataset(task, a.variants + 1, a.seed, a.data_dir, a.duration or None)
     rows = []
     for path, model, meta in loaded:
-        errs = variant_errors(model.eval(), task, data)
-        rows.append({"checkpoint": str(path), "score_mm": score(errs),
+        errs = fresh_errors(model.eval(), task, data)
+        rows.append({"checkpoint": str(path), "score_mm": fresh_score(errs),
                      "max_mm": [[e[ax]["max_mm"] for ax in "xyz"] for e in errs],
                      "mean_mm": [[e[ax]["mean_mm"] for ax in "xyz"] for e in errs]})
     rows.sort(key=lambda r: r["score_mm"])

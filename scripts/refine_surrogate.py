@@ -8,8 +8,11 @@ model's own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--hor
 ``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest drawn
 with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean, ``--node-weight`` the
 scene's node of interest among the modelled nodes) and minimises it with ``torch.optim.LBFGS`` (strong Wolfe line
-search), the gradient summed over chunks of ``--chunk`` windows. The weights with the lowest loss seen are kept (``--max-time`` may stop the run
-inside a line search). The checkpoint's scales are kept. The data must be the checkpoint's
+search), the gradient summed over chunks of ``--chunk`` windows on ``--device``. The weights with the lowest loss
+seen are kept (``--max-time`` may stop the run inside a line search); with ``--val-seed``, those with the lowest score
+on ``--val-variants`` fresh variants of the scene instead (``rank_checkpoints.py``'s score: the mean over the variants
+of the node of interest's largest free-running error, from rest), scored at the first evaluation, every
+``--val-every``-th and the last (``loss_best``: the kept weights' loss). The checkpoint's scales are kept. The data must be the checkpoint's
 own: the same hash, or, with ``--keep-scales``, any data of its task. The refined model is evaluated as
 ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes) and written with the
 checkpoint's metadata, its new metrics, this command and ``init_from`` (the starting file's path, SHA-256, command
@@ -31,7 +34,7 @@ from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
 from cmlearn.surrogate.checkpoint import provenance
-from cmlearn.surrogate.evaluate import evaluate_scenes, interest_slots, recorded_check
+from cmlearn.surrogate.evaluate import evaluate_scenes, fresh_errors, fresh_score, interest_slots, recorded_check
 
 
 def parse(argv=None) -> argparse.Namespace:
@@ -55,10 +58,16 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--history", type=int, default=20, help="L-BFGS history size")
     ap.add_argument("--chunk", type=int, default=128, help="windows per forward and backward pass")
     ap.add_argument("--max-time", type=float, default=0.0, help="minutes of refinement at most (0: no limit)")
+    ap.add_argument("--val-seed", type=int, default=None,
+                    help="select the weights by the fresh variants of this seed (default: by the loss)")
+    ap.add_argument("--val-variants", type=int, default=16, help="fresh variants --val-seed draws")
+    ap.add_argument("--val-every", type=int, default=5, help="score the fresh variants at every n-th evaluation")
+    ap.add_argument("--device", default="cpu", help="torch device of the refinement (cpu, cuda, cuda:1, ...)")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     ap.add_argument("--out", required=True, help="the refined checkpoint (.pt)")
     a = ap.parse_args(argv)
-    for name in ("variants", "windows", "horizon", "max_evals", "history", "chunk", "threads"):
+    for name in ("variants", "windows", "horizon", "max_evals", "history", "chunk", "threads", "val_variants",
+                 "val_every"):
         if getattr(a, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
     if a.max_time < 0 or a.duration < 0:
@@ -66,6 +75,14 @@ def parse(argv=None) -> argparse.Namespace:
     for name in ("printed_weight", "node_weight"):
         if not getattr(a, name) > 0:
             ap.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(a, name)}")
+    if a.val_seed is not None and a.val_seed == a.seed:
+        ap.error(f"--val-seed {a.val_seed} is the data's --seed: its variants are trained on")
+    try:
+        dev = torch.device(a.device)
+    except RuntimeError as e:
+        ap.error(f"--device {a.device!r}: {e}")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        ap.error(f"--device {a.device}: no CUDA device is available")
     return a
 
 
@@ -100,17 +117,27 @@ def main(argv=None) -> dict:
     printed = sum(v == 0 for v, _, _ in ds.index)  # the printed scene's windows (variant 0, the first range)
     idx = fixed_windows(ds, printed, a.windows, a.window_seed)
     n_printed = min(printed, len(idx))
-    batch = default_collate([ds[i] for i in idx])
+    dev = torch.device(a.device)
+    batch = [t.to(dev) for t in default_collate([ds[i] for i in idx])]
     # the printed windows (the first n_printed) in chunks of their own, so that each chunk has one weight
     bounds = [(i, min(i + a.chunk, n_printed)) for i in range(0, n_printed, a.chunk)]
     bounds += [(i, min(i + a.chunk, len(idx))) for i in range(n_printed, len(idx), a.chunk)]
     chunks = [(tuple(t[i:j] for t in batch), (j - i) * (a.printed_weight if i < n_printed else 1.0))
               for i, j in bounds]
     total_weight = n_printed * a.printed_weight + len(idx) - n_printed
-    node_weights = torch.ones(len(model.config.modeled))
+    node_weights = torch.ones(len(model.config.modeled), device=dev)
     node_weights[list(model.config.modeled).index(interest_slots(task, task.base_scene())[0])] = a.node_weight
-    model.train()
+    val = None if a.val_seed is None else cached_dataset(task, a.val_variants + 1, a.val_seed, a.data_dir,
+                                                         a.duration or None)
+    model.to(dev).train()
     module = SurrogateModule(model, horizon=a.horizon)
+
+    def val_score() -> float:
+        model.eval()
+        try:
+            return fresh_score(fresh_errors(model, task, val))
+        finally:
+            model.train()
 
     def loss_and_grad() -> float:
         total = 0.0
@@ -125,15 +152,23 @@ def main(argv=None) -> dict:
                             history_size=a.history, line_search_fn="strong_wolfe", tolerance_grad=0.0,
                             tolerance_change=0.0)
     t0 = time.perf_counter()
-    trace, best = [], {"loss": float("inf"), "state": None}
+    trace, scores = [], []  # scores: (evaluation, loss, fresh score) where scored
+    best = {"loss": float("inf"), "score": float("inf"), "eval": 0, "state": None}
 
     def closure():
         opt.zero_grad()
         loss = loss_and_grad()
         trace.append(loss)
-        if loss < best["loss"]:
-            best["loss"], best["state"] = loss, copy.deepcopy(model.state_dict())
-        print(f"eval {len(trace)}: loss {loss:.4g} (best {best['loss']:.4g}), {time.perf_counter() - t0:.0f} s",
+        n, note = len(trace), ""
+        if val is None and loss < best["loss"]:
+            best.update(loss=loss, eval=n, state=copy.deepcopy(model.state_dict()))
+        if val is not None and (n == 1 or n % a.val_every == 0 or n >= a.max_evals):
+            score = val_score()
+            scores.append((n, loss, score))
+            if score < best["score"]:
+                best.update(loss=loss, score=score, eval=n, state=copy.deepcopy(model.state_dict()))
+            note = f", fresh {score:.3f} mm (best {best['score']:.3f} at {best['eval']})"
+        print(f"eval {n}: loss {loss:.4g} (kept {best['loss']:.4g}){note}, {time.perf_counter() - t0:.0f} s",
               flush=True)
         if not torch.isfinite(torch.tensor(loss)):
             raise _Budget(f"the rollout ran away at evaluation {len(trace)}")
@@ -152,7 +187,7 @@ def main(argv=None) -> dict:
         raise SystemExit(f"{a.checkpoint}: the starting rollout loss is not finite on these windows")
     model.load_state_dict(best["state"])
     wall = time.perf_counter() - t0
-    model.eval()  # load_checkpoint gave it on the CPU in float32
+    model.cpu().eval()  # evaluated and written on the CPU, as load_checkpoint gave it
     metrics = evaluate_scenes(model, task, data, a.duration or None, a.data_dir)
     cmd = "python scripts/refine_surrogate.py " + " ".join(
         shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
@@ -161,17 +196,22 @@ def main(argv=None) -> dict:
                init_from=provenance(a.checkpoint, meta),
                refine={"windows": len(idx), "printed_windows": n_printed,
                        "printed_weight": a.printed_weight, "node_weight": a.node_weight, "horizon": a.horizon,
-                       "evaluations": len(trace), "loss_start": trace[0], "loss_best": best["loss"], "stop": stop})
+                       "evaluations": len(trace), "loss_start": trace[0], "loss_best": best["loss"],
+                       "kept_evaluation": best["eval"], "stop": stop, "device": str(dev),
+                       "select": "loss" if val is None else {
+                           "seed": a.val_seed, "variants": a.val_variants, "every": a.val_every,
+                           "score_start_mm": scores[0][2], "score_best_mm": best["score"], "scored": scores}})
     out["check"] = recorded_check(model, out, a.duration, a.data_dir)
     save_checkpoint(a.out, model, out)
-    print(f"wrote {a.out}: loss {trace[0]:.4g} -> {best['loss']:.4g} in {len(trace)} evaluations, {wall:.0f} s "
-          f"({stop})")
+    print(f"wrote {a.out}: loss {trace[0]:.4g} -> {best['loss']:.4g} (evaluation {best['eval']} of {len(trace)}), "
+          f"{wall:.0f} s ({stop})")
     for case, m in metrics.items():
         e = m["free_running"]["node"]
         print(f"  {case:28s} free-running " + "  ".join(
             f"{ax}: {e[ax]['max_mm']:.2f}/{e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
     res = {"checkpoint": a.out, "loss_start": trace[0], "loss_best": best["loss"], "evaluations": len(trace),
-           "wall_s": wall, "stop": stop, "metrics": metrics}
+           "kept_evaluation": best["eval"], "select": out["refine"]["select"], "wall_s": wall, "stop": stop,
+           "metrics": metrics}
     print(json.dumps(res))
     return res
 

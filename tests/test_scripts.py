@@ -748,3 +748,31 @@ def test_refine_surrogate_lowers_the_rollout_loss_on_its_fixed_windows(tmp_path)
     script_fails([str(ROOT / "scripts/refine_surrogate.py"), str(ROOT / "checkpoints" / "magnetic_rod.pt"),
                   "--out", "x.pt"], tmp_path, "position tasks only")
     script_fails(args + ["--windows", "0", "--out", "x.pt"], tmp_path, "--windows")
+
+
+def test_refine_surrogate_keeps_the_weights_the_fresh_variants_score_best(tmp_path):
+    """``--val-seed``: the fresh variants are scored at the first evaluation, every ``--val-every``-th and the last;
+    the written model is the scored one with the lowest score, which ``fresh_score`` reproduces on it (and the
+    starting model the first score); the data's own seed and a device that does not exist are refused."""
+    from cmlearn.data import cached_dataset, get_task
+    from cmlearn.surrogate import load_checkpoint
+    from cmlearn.surrogate.evaluate import fresh_errors, fresh_score
+    ck = str(ROOT / "checkpoints" / "semicircle_fast.pt")
+    args = [str(ROOT / "scripts/refine_surrogate.py"), ck, "--variants", "3", "--duration", "0.3", "--data-dir",
+            str(tmp_path), "--windows", "24", "--horizon", "4", "--chunk", "12", "--keep-scales",
+            "--val-variants", "2", "--val-every", "2"]
+    res = run_script(args + ["--max-evals", "5", "--val-seed", "2", "--device", "cpu", "--out", "v.pt"], tmp_path)
+    sel = res["select"]
+    assert [s[0] for s in sel["scored"]] == [1, 2, 4, 5] and res["evaluations"] == 5
+    n, loss, score = min(sel["scored"], key=lambda s: s[2])
+    assert res["kept_evaluation"] == n and res["loss_best"] == loss and sel["score_best_mm"] == score
+    model, meta = load_checkpoint(tmp_path / "v.pt")
+    assert meta["refine"]["select"] == sel and meta["refine"]["device"] == "cpu"
+    task = get_task(meta["task"])
+    val = cached_dataset(task, 3, 2, tmp_path, 0.3)
+    assert fresh_score(fresh_errors(model.eval(), task, val)) == pytest.approx(score, rel=1e-4)
+    start = load_checkpoint(ck)[0].eval()
+    assert fresh_score(fresh_errors(start, task, val)) == pytest.approx(sel["scored"][0][2], rel=1e-4)
+    assert len({s[2] for s in sel["scored"]}) > 1  # the weights moved between the scorings
+    script_fails(args + ["--val-seed", "0", "--out", "x.pt"], tmp_path, "--val-seed 0")
+    script_fails(args + ["--device", "nonsense", "--out", "x.pt"], tmp_path, "--device")

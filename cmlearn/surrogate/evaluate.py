@@ -22,7 +22,7 @@ from torch import Tensor
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
 __all__ = ["one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest", "interest_slots",
-           "THESIS_ERRORS_MM", "thesis_errors"]
+           "fresh_errors", "fresh_score", "THESIS_ERRORS_MM", "thesis_errors"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
 THESIS_ERRORS_MM = {
@@ -126,6 +126,30 @@ def evaluate(model, positions: Tensor, wrench: Tensor, start: int, slots, length
                      "all_nodes_max_mm": float((pred - ref).abs().max()) * 1e3,
                      "rmse_mean_mm": float(r.mean()) * 1e3, "rmse_max_mm": float(r.max()) * 1e3}
     return out
+
+
+@torch.no_grad()
+def fresh_errors(model, task, data: dict) -> list[dict]:
+    """Free-running errors (:func:`cmlearn.eval.metrics.axis_errors`) of the node of interest on each variant of
+    ``data`` but the first (the printed scene), each from rest, all variants in one batched rollout on the model's
+    device. ``data``: a dataset of ``task`` (:func:`cmlearn.data.cached_dataset`), for instance fresh variants that
+    no model was trained on."""
+    from cmlearn.data.windows import node_wrench
+    meta, eta = data["meta"], model.config.eta
+    dev = model.length_scale.device
+    slot = interest_slots(task, task.base_scene())[0]
+    wrench = node_wrench(data["wrench"], meta["wrench_nodes"], meta["modeled"]).float()
+    starts = [from_rest(p, w, eta) for p, w in zip(data["positions"][1:].float(), wrench[1:])]
+    pos, wr = torch.stack([p for p, _ in starts]).to(dev), torch.stack([w for _, w in starts]).to(dev)
+    pred = model.rollout(pos[:, :eta + 1], wr[:, eta:], pos[:, 0], anchors=pos[:, eta + 1:]).cpu()
+    ref = pos[:, eta + 1:].cpu()
+    return [axis_errors(pred[v, :, slot].double(), ref[v, :, slot].double(), meta["rod_length"])
+            for v in range(pred.shape[0])]
+
+
+def fresh_score(errors: list[dict]) -> float:
+    """Mean over the variants of :func:`fresh_errors` of the largest axis's max error (mm)."""
+    return sum(max(e[ax]["max_mm"] for ax in "xyz") for e in errors) / len(errors)
 
 
 def evaluate_scenes(model, task, data: dict, duration: float | None = None, data_dir=None) -> dict:
