@@ -3,20 +3,20 @@
     python scripts/refine_surrogate.py checkpoints/semicircle.pt --variants 96 --windows 1024 --max-time 72 \
         --out runs/semi_lbfgs.pt
 
-Training (``train_surrogate.py``) draws a new mini-batch of windows at every Adam step. This instead takes the model's
-own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--horizon`` steps, no training noise) over
-``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest drawn
-with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean, ``--node-weight`` the
-scene's node of interest among the modelled nodes) and minimises it with ``torch.optim.LBFGS`` (strong Wolfe line
-search), the gradient summed over chunks of ``--chunk`` windows on ``--device``. The weights with the lowest loss seen
-are kept (``--max-time`` may stop the run inside a line search); with ``--val-seed``, those with the lowest score on
-``--val-variants`` fresh variants of the scene instead (``rank_checkpoints.py``'s score: the mean over the variants of
-the node of interest's largest free-running error, from rest), scored at the first evaluation, every
-``--val-every``-th and the last (``loss_best``: the kept weights' loss). The checkpoint's scales are kept. The data must be
-the checkpoint's own: the same hash, or, with ``--keep-scales``, any data of its task. The refined model is evaluated
-as ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes) and written with the
-checkpoint's metadata, its new metrics, this command and ``init_from`` (the starting file's path, SHA-256, command and
-data hash). Position tasks only. Ends with one JSON line.
+Training (``train_surrogate.py``) draws a new mini-batch of windows at every Adam step. This instead takes the
+model's own free-running rollout loss (``SurrogateModule.rollout_loss``: ``--horizon`` steps, no training noise)
+over ``--windows`` fixed windows of the checkpoint's training ranges (every window of the printed scene, the rest
+drawn with ``--window-seed``; ``--printed-weight`` weighs the printed scene's windows in the mean, ``--node-weight``
+the scene's node of interest among the modelled nodes) and minimises it with ``torch.optim.LBFGS`` (strong Wolfe
+line search), the gradient summed over chunks of ``--chunk`` windows on ``--device``. The weights with the lowest
+loss seen are kept (``--max-time`` may stop the run inside a line search); with ``--val-seed``, those with the
+lowest score on ``--val-variants`` fresh variants of the scene instead (``rank_checkpoints.py``'s score: the mean
+over the variants of the node of interest's largest free-running error, from rest), scored at the first evaluation,
+every ``--val-every``-th and the last (``loss_best``: the kept weights' loss). The checkpoint's scales are kept. The
+data must be the checkpoint's own: the same hash, or, with ``--keep-scales``, any data of its task. The refined
+model is evaluated as ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes) and
+written with the checkpoint's metadata, its new metrics, this command and ``init_from`` (the starting file's path,
+SHA-256, command and data hash). Position tasks only. Ends with one JSON line.
 """
 from __future__ import annotations
 
