@@ -776,3 +776,47 @@ def test_refine_surrogate_keeps_the_weights_the_fresh_variants_score_best(tmp_pa
     assert len({s[2] for s in sel["scored"]}) > 1  # the weights moved between the scorings
     script_fails(args + ["--val-seed", "0", "--out", "x.pt"], tmp_path, "--val-seed 0")
     script_fails(args + ["--device", "nonsense", "--out", "x.pt"], tmp_path, "--device")
+
+
+def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
+    """``--alpha 0.25``: each parameter is 0.75 A + 0.25 B, the scales A's; the fresh scores of A, B and the blend
+    are those ``fresh_score`` gives them; the metadata names both parents; another task, other scales and an alpha
+    outside [0, 1] are refused."""
+    from cmlearn.data import cached_dataset, get_task
+    from cmlearn.surrogate import load_checkpoint, save_checkpoint
+    from cmlearn.surrogate.evaluate import fresh_errors, fresh_score
+    ck = ROOT / "checkpoints" / "semicircle_fast.pt"
+    a_model, meta = load_checkpoint(ck)
+    b_model = load_checkpoint(ck)[0]
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in b_model.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=g) * p.abs().mean())
+    save_checkpoint(tmp_path / "b.pt", b_model, meta)
+    args = [str(ROOT / "scripts/blend_checkpoints.py"), str(ck), "b.pt", "--variants", "3", "--duration", "0.3",
+            "--data-dir", str(tmp_path)]
+    res = run_script(args + ["--alpha", "0.25", "--val-seed", "2", "--val-variants", "2", "--out", "m.pt"], tmp_path)
+    model, m_meta = load_checkpoint(tmp_path / "m.pt")
+    params = dict(model.named_parameters())
+    for (k, pa), pb in zip(a_model.named_parameters(), b_model.parameters()):
+        assert torch.allclose(params[k], 0.75 * pa + 0.25 * pb, rtol=1e-6, atol=1e-7), k
+        assert not torch.allclose(params[k], pa)
+    for (k, ba), bm in zip(a_model.named_buffers(), model.buffers()):
+        assert torch.equal(ba, bm), k
+    blend = m_meta["blend"]
+    assert blend["alpha"] == 0.25 and m_meta["metrics"] == res["metrics"]
+    assert blend["start"]["sha256"] == hashlib.sha256(ck.read_bytes()).hexdigest() == m_meta["init_from"]["sha256"]
+    assert blend["end"]["sha256"] == hashlib.sha256((tmp_path / "b.pt").read_bytes()).hexdigest()
+    assert m_meta["command"].startswith("python scripts/blend_checkpoints.py") and m_meta["check"]["max_err_mm"] > 0
+    task = get_task(meta["task"])
+    val = cached_dataset(task, 3, 2, tmp_path, 0.3)
+    for key, m in (("start", a_model), ("end", b_model), ("blend", model)):
+        assert blend["fresh"][f"score_{key}_mm"] == pytest.approx(fresh_score(fresh_errors(m.eval(), task, val)),
+                                                                  rel=1e-6)
+    with torch.no_grad():
+        b_model.a_scale.mul_(1.5)
+    save_checkpoint(tmp_path / "c.pt", b_model, meta)
+    script_fails(args[:2] + ["c.pt", "--alpha", "0.5", "--out", "x.pt"], tmp_path, "buffer 'a_scale'")
+    script_fails(args[:2] + [str(ROOT / "checkpoints" / "magnetic_rod.pt"), "--alpha", "0.5", "--out", "x.pt"],
+                 tmp_path, "task 'magnetic_rod'")
+    script_fails(args + ["--alpha", "1.5", "--out", "x.pt"], tmp_path, "--alpha")
