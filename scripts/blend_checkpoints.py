@@ -14,6 +14,7 @@ score). It is written with A's metadata, its new metrics, this command, ``init_f
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import shlex
 import sys
@@ -65,7 +66,7 @@ def blend_state(start, end, alpha: float) -> dict:
 def main(argv=None) -> dict:
     a = parse(argv)
     torch.set_num_threads(a.threads)
-    model, meta = load_checkpoint(a.start)
+    start, meta = load_checkpoint(a.start)
     end, end_meta = load_checkpoint(a.end)
     if end_meta["task"] != meta["task"]:
         raise SystemExit(f"end: {a.end} is of task {end_meta['task']!r}, {a.start} of {meta['task']!r}")
@@ -75,7 +76,7 @@ def main(argv=None) -> dict:
     if task.custom:
         raise SystemExit(f"{a.start}: task {task.name!r} has its own evaluation; blend_checkpoints.py takes "
                          "position tasks only")
-    start = load_checkpoint(a.start)[0]
+    model = copy.deepcopy(start)
     try:
         model.load_state_dict(blend_state(start, end, a.alpha))
     except ValueError as e:
