@@ -24,7 +24,7 @@ import torch
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
 from cmlearn.surrogate.checkpoint import provenance
-from cmlearn.surrogate.evaluate import evaluate_scenes, fresh_errors, fresh_score, recorded_check
+from cmlearn.surrogate.evaluate import evaluate_scenes, fresh_errors, fresh_score, metric_lines, recorded_check
 
 
 def parse(argv=None) -> argparse.Namespace:
@@ -103,10 +103,7 @@ def main(argv=None) -> dict:
     print(f"wrote {a.out}: alpha {a.alpha} between {a.start} and {a.end}"
           + (f"; fresh seed {a.val_seed}: {fresh['score_start_mm']:.2f} | {fresh['score_end_mm']:.2f} | blend "
              f"{fresh['score_blend_mm']:.2f} mm" if fresh else ""))
-    for case, m in metrics.items():
-        e = m["free_running"]["node"]
-        print(f"  {case:28s} free-running " + "  ".join(
-            f"{ax}: {e[ax]['max_mm']:.2f}/{e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
+    print("\n".join(metric_lines(metrics, ("free_running",))))
     res = {"checkpoint": a.out, "alpha": a.alpha, "fresh": fresh, "metrics": metrics}
     print(json.dumps(res))
     return res

@@ -34,7 +34,8 @@ from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
 from cmlearn.surrogate.checkpoint import provenance
-from cmlearn.surrogate.evaluate import evaluate_scenes, fresh_errors, fresh_score, interest_slots, recorded_check
+from cmlearn.surrogate.evaluate import (evaluate_scenes, fresh_errors, fresh_score, interest_slots, metric_lines,
+                                       recorded_check)
 
 
 def parse(argv=None) -> argparse.Namespace:
@@ -205,10 +206,7 @@ def main(argv=None) -> dict:
     save_checkpoint(a.out, model, out)
     print(f"wrote {a.out}: loss {trace[0]:.4g} -> {best['loss']:.4g} (evaluation {best['eval']} of {len(trace)}), "
           f"{wall:.0f} s ({stop})")
-    for case, m in metrics.items():
-        e = m["free_running"]["node"]
-        print(f"  {case:28s} free-running " + "  ".join(
-            f"{ax}: {e[ax]['max_mm']:.2f}/{e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
+    print("\n".join(metric_lines(metrics, ("free_running",))))
     res = {"checkpoint": a.out, "loss_start": trace[0], "loss_best": best["loss"], "evaluations": len(trace),
            "kept_evaluation": best["eval"], "select": out["refine"]["select"], "wall_s": wall, "stop": stop,
            "metrics": metrics}

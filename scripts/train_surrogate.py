@@ -30,7 +30,7 @@ from cmlearn.data import TASKS, cached_dataset, get_task
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
 from cmlearn.surrogate.checkpoint import provenance
-from cmlearn.surrogate.evaluate import evaluate_scenes, recorded_check
+from cmlearn.surrogate.evaluate import evaluate_scenes, metric_lines, recorded_check
 
 
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
@@ -370,11 +370,7 @@ def main(argv=None):
     out = Path(a.out or f"checkpoints/{task.name}.pt")
     save_checkpoint(out, model, meta)
     print(f"wrote {out}")
-    for case, m in metrics.items():
-        for mode in ("one_step", "free_running"):
-            e = m[mode]["node"]
-            print(f"  {case:28s} {mode:12s} " + "  ".join(
-                f"{ax}: {e[ax]['max_mm']:.2f}/{e[ax]['mean_mm']:.2f} mm" for ax in "xyz"))
+    print("\n".join(metric_lines(metrics)))
     print(json.dumps({"checkpoint": str(out), "metrics": metrics, "train_wall_s": t_train}))
     return meta
 

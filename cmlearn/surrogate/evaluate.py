@@ -22,7 +22,7 @@ from torch import Tensor
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
 __all__ = ["one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest", "interest_slots",
-           "fresh_errors", "fresh_score", "THESIS_ERRORS_MM", "thesis_errors"]
+           "fresh_errors", "fresh_score", "metric_lines", "THESIS_ERRORS_MM", "thesis_errors"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
 THESIS_ERRORS_MM = {
@@ -150,6 +150,14 @@ def fresh_errors(model, task, data: dict) -> list[dict]:
 def fresh_score(errors: list[dict]) -> float:
     """Mean over the variants of :func:`fresh_errors` of the largest axis's max error (mm)."""
     return sum(max(e[ax]["max_mm"] for ax in "xyz") for e in errors) / len(errors)
+
+
+def metric_lines(metrics: dict, modes=("one_step", "free_running")) -> list[str]:
+    """One line per case of :func:`evaluate_scenes`'s ``metrics`` and mode: the node of interest's max/mean error
+    per axis (mm), as the training and refinement scripts print them."""
+    return [f"  {case:28s} {mode:12s} " + "  ".join(
+        f"{ax}: {m[mode]['node'][ax]['max_mm']:.2f}/{m[mode]['node'][ax]['mean_mm']:.2f} mm" for ax in "xyz")
+        for case, m in metrics.items() for mode in modes]
 
 
 def evaluate_scenes(model, task, data: dict, duration: float | None = None, data_dir=None) -> dict:
