@@ -3,9 +3,11 @@
     python scripts/blend_checkpoints.py checkpoints/semicircle.pt runs/semi_lbfgs.pt --alpha 0.6 --val-seed 1 \
         --out runs/semi_blend.pt
 
-A refinement (``refine_surrogate.py``) of A ends at B; the models on the straight line between them trade what B
-gained on its training windows against what A did better elsewhere. A and B must be of one task and one architecture
-with the same scales (as a refinement keeps them). The blend is evaluated as ``train_surrogate.py`` evaluates (the
+A refinement (``refine_surrogate.py``) or fine-tuning (``train_surrogate.py --init-from``) of A ends at B; the models
+on the straight line between them trade what B gained on its training windows against what A did better elsewhere.
+A and B must be of one task with the same scales (as a refinement or fine-tuning on A's data keeps them), and B of
+A's architecture or a widening of it (a wider head, stencil or mix): then A is first widened as the fine-tuning
+started (``NodeLSTMSurrogate.widened_to``), and the blend has B's architecture. The blend is evaluated as ``train_surrogate.py`` evaluates (the
 printed scene's last 40 % and the held-out scenes, on ``--variants`` variants of seed ``--seed``: by default A's own
 data) and, with ``--val-seed``, scored with A and B on ``--val-variants`` fresh variants (``rank_checkpoints.py``'s
 score). It is written with A's metadata, its new metrics, this command, ``init_from`` (A's provenance) and ``blend``
@@ -71,7 +73,11 @@ def main(argv=None) -> dict:
     if end_meta["task"] != meta["task"]:
         raise SystemExit(f"end: {a.end} is of task {end_meta['task']!r}, {a.start} of {meta['task']!r}")
     if end_meta["architecture"] != meta["architecture"]:
-        raise SystemExit(f"end: {a.end} has another architecture than {a.start}")
+        try:
+            start = start.widened_to(end.config)
+        except ValueError as e:
+            raise SystemExit(f"end: {a.end} has another architecture than {a.start}, nor a widening of it: {e}"
+                             ) from None
     task = get_task(meta["task"])
     if task.custom:
         raise SystemExit(f"{a.start}: task {task.name!r} has its own evaluation; blend_checkpoints.py takes "
@@ -94,7 +100,7 @@ def main(argv=None) -> dict:
     cmd = "python scripts/blend_checkpoints.py " + " ".join(
         shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
     out = dict(meta)
-    out.update(metrics=metrics, command=cmd, data_hash=data["meta"]["data_hash"],
+    out.update(architecture=end_meta["architecture"], n_parameters=end_meta["n_parameters"], metrics=metrics, command=cmd, data_hash=data["meta"]["data_hash"],
                init_from=provenance(a.start, meta),
                blend={"alpha": a.alpha, "start": provenance(a.start, meta), "end": provenance(a.end, end_meta),
                       "fresh": fresh})

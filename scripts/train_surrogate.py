@@ -20,7 +20,7 @@ import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import torch
@@ -211,16 +211,13 @@ def load_init(task, a: Args) -> tuple[NodeLSTMSurrogate, dict]:
         init, meta = load_checkpoint(a.init_from, task=task.name)
     except CheckpointError as e:
         raise SystemExit(f"--init-from: {e}") from None
-    want = model_config(task, a)
     # the chord projection, the rest anchor and the mirrors have no weights: a run may add or drop them; a wider
-    # head, stencil or mix is added as weights that start without effect (NodeLSTMSurrogate.widen)
-    if replace(init.config, chord_projection=a.chord_projection, rest_anchor=want.rest_anchor,
-               rest_shape=want.rest_shape, reflections=want.reflections,
-               head_hidden=max(init.config.head_hidden, want.head_hidden), mix=max(init.config.mix, want.mix),
-               mix_width=want.mix_width).with_stencil(max(init.config.stencil, want.stencil)) != want:
-        raise SystemExit(f"--init-from: {a.init_from} has architecture {init.config.to_dict()}, this run builds "
-                         f"{want.to_dict()} (pass the same --eta and --hidden, and a --head-hidden, --stencil and "
-                         "--mix at least its own)")
+    # head, stencil or mix is added as weights that start without effect (NodeLSTMSurrogate.widened_to)
+    try:
+        init.widened_to(model_config(task, a))
+    except ValueError as e:
+        raise SystemExit(f"--init-from: {a.init_from}: {e}; pass the same --eta and --hidden, and a --head-hidden, "
+                         "--stencil and --mix at least its own") from None
     return init, meta
 
 
@@ -251,10 +248,7 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                              f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative; "
                              "--keep-scales keeps the checkpoint's)")
-    init = init.widen(model.config.head_hidden, model.config.stencil, model.config.mix)
-    if model.config.mix:
-        init = init.with_mix_width(model.config.mix_width)
-    model.load_state_dict(init.state_dict())
+    model.load_state_dict(init.widened_to(model.config).state_dict())
     model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
     return {**provenance(path, meta), "scales_off": off}
 

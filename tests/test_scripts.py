@@ -220,7 +220,7 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", "--rest-anchor", "--mirror",
                   "zx", "--head-hidden", "16", "--init-from", "ck.pt"], tmp_path,
                  "a --head-hidden, --stencil and --mix at least its own")
-    for extra, msg in ((["--init-from", "ck.pt", "--eta", "3"], "--init-from: ck.pt has architecture"),
+    for extra, msg in ((["--init-from", "ck.pt", "--eta", "3"], "--init-from: ck.pt: architecture"),
                        (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
     for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
@@ -781,7 +781,10 @@ def test_refine_surrogate_keeps_the_weights_the_fresh_variants_score_best(tmp_pa
 def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
     """``--alpha 0.25``: each parameter is 0.75 A + 0.25 B, the scales A's; the fresh scores of A, B and the blend
     are those ``fresh_score`` gives them; the metadata names both parents; another task, other scales and an alpha
-    outside [0, 1] are refused."""
+    outside [0, 1] are refused. A B with a mixing head A lacks blends with A widened to it; B narrower is refused."""
+    import copy
+    from dataclasses import replace
+
     from cmlearn.data import cached_dataset, get_task
     from cmlearn.surrogate import load_checkpoint, save_checkpoint
     from cmlearn.surrogate.evaluate import fresh_errors, fresh_score
@@ -820,3 +823,21 @@ def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
     script_fails(args[:2] + [str(ROOT / "checkpoints" / "magnetic_rod.pt"), "--alpha", "0.5", "--out", "x.pt"],
                  tmp_path, "task 'magnetic_rod'")
     script_fails(args + ["--alpha", "1.5", "--out", "x.pt"], tmp_path, "--alpha")
+    # B fine-tuned with a mixing head A lacks: A is first widened as the fine-tuning started, the blend is B's kind
+    wide = a_model.widened_to(replace(a_model.config, mix=1, mix_width=4))
+    w_model = copy.deepcopy(wide)
+    with torch.no_grad():
+        for p in w_model.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=g) * p.abs().mean())
+    w_meta = {**meta, "architecture": w_model.config.to_dict(),
+              "n_parameters": sum(p.numel() for p in w_model.parameters())}
+    save_checkpoint(tmp_path / "w.pt", w_model, w_meta)
+    run_script(args[:2] + ["w.pt", *args[3:], "--alpha", "0.5", "--out", "mw.pt"], tmp_path)
+    model, mw_meta = load_checkpoint(tmp_path / "mw.pt")
+    assert (model.config.mix, model.config.mix_width) == (1, 4)
+    assert mw_meta["architecture"] == load_checkpoint(tmp_path / "w.pt")[1]["architecture"]
+    params = dict(model.named_parameters())
+    for (k, pa), pb in zip(wide.named_parameters(), w_model.parameters()):
+        assert torch.allclose(params[k], 0.5 * pa + 0.5 * pb, rtol=1e-6, atol=1e-7), k
+    script_fails(args[:1] + ["w.pt", str(ck), *args[3:], "--alpha", "0.5", "--out", "x.pt"], tmp_path,
+                 "nor a widening of it")  # the other way round: B narrower than A

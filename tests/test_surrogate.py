@@ -671,6 +671,14 @@ def test_a_widened_head_or_stencil_steps_as_before_and_what_it_adds_learns():
     assert not wider.lstm.weight_ih_l0[:, 30:].any()
     with torch.no_grad():
         assert torch.equal(wider(hist, wrench, ref.expand(2, -1, -1)), model(hist, wrench, ref.expand(2, -1, -1)))
+    # widened_to: the same growth named by the target architecture (as --init-from and blend_checkpoints use it)
+    grown = model.widened_to(replace(model.config, head_hidden=96).with_stencil(2))
+    assert grown.config == wide.config
+    with torch.no_grad():
+        assert torch.equal(grown(hist, wrench, ref.expand(2, -1, -1)), model(hist, wrench, ref.expand(2, -1, -1)))
+    for bad in (replace(model.config, hidden=16), replace(model.config, head_hidden=32)):
+        with pytest.raises(ValueError, match="does not grow into"):
+            model.widened_to(bad)
 
 
 @pytest.mark.parametrize("stencil", [2, 3])

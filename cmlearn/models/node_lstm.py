@@ -529,6 +529,28 @@ class NodeLSTMSurrogate(nn.Module):
         wide.load_state_dict(state)
         return wide.train(self.training)
 
+    def widened_to(self, config: NodeLSTMConfig) -> "NodeLSTMSurrogate":
+        """This model in the architecture ``config``, stepping as this model does: ``config`` may differ from this
+        model's only in what has no weights (the chord projection, the rest anchor and its shape, the mirrors) and
+        in a wider head, stencil or mix (:meth:`widen`, the neighbours' outputs then projected to its ``mix_width``
+        by :meth:`with_mix_width`). Where a fine-tuning run (``train_surrogate.py --init-from``) grows a model, this
+        is its starting point (but for an added ring's offset scales, which the run sets from its data).
+        ValueError naming both architectures otherwise."""
+        c = self.config
+        grown = replace(c, chord_projection=config.chord_projection, rest_anchor=config.rest_anchor,
+                        rest_shape=config.rest_shape, reflections=config.reflections,
+                        head_hidden=max(c.head_hidden, config.head_hidden), mix=max(c.mix, config.mix),
+                        mix_width=config.mix_width).with_stencil(max(c.stencil, config.stencil))
+        if grown != config:
+            raise ValueError(f"architecture {c.to_dict()} does not grow into {config.to_dict()} (the same eta and "
+                             "hidden, and a head, stencil and mix at least its own)")
+        wide = self.widen(config.head_hidden, config.stencil, config.mix)
+        if config.mix:
+            wide = wide.with_mix_width(config.mix_width)
+        out = NodeLSTMSurrogate(config).to(self.length_scale.device)
+        out.load_state_dict(wide.state_dict())
+        return out.train(self.training)
+
     @property
     def _head_own_inputs(self) -> int:
         """The head's inputs before the neighbours' outputs: the node's own LSTM output, force features, embedding."""
