@@ -7,9 +7,9 @@ A refinement (``refine_surrogate.py``) or fine-tuning (``train_surrogate.py --in
 on the straight line between them trade what B gained on its training windows against what A did better elsewhere.
 A and B must be of one task with the same scales (as a refinement or fine-tuning on A's data keeps them), and B of
 A's architecture or a widening of it (a wider head, stencil or mix): then A is first widened as the fine-tuning
-started (``NodeLSTMSurrogate.widened_to``), and the blend has B's architecture. The blend is evaluated as ``train_surrogate.py`` evaluates (the
-printed scene's last 40 % and the held-out scenes, on ``--variants`` variants of seed ``--seed``: by default A's own
-data) and, with ``--val-seed``, scored with A and B on ``--val-variants`` fresh variants (``rank_checkpoints.py``'s
+started (``NodeLSTMSurrogate.widened_to``; an added ring's offset scales B's), and the blend has B's architecture.
+The blend is evaluated as ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes, on
+``--variants`` variants of seed ``--seed``: by default A's own data) and, with ``--val-seed``, scored with A and B on ``--val-variants`` fresh variants (``rank_checkpoints.py``'s
 score). It is written with A's metadata, its new metrics, this command, ``init_from`` (A's provenance) and ``blend``
 (alpha, A's and B's provenance, the fresh scores). Position tasks only. Ends with one JSON line.
 """
@@ -73,11 +73,14 @@ def main(argv=None) -> dict:
     if end_meta["task"] != meta["task"]:
         raise SystemExit(f"end: {a.end} is of task {end_meta['task']!r}, {a.start} of {meta['task']!r}")
     if end_meta["architecture"] != meta["architecture"]:
+        ring = 6 * start.config.stencil
         try:
             start = start.widened_to(end.config)
         except ValueError as e:
             raise SystemExit(f"end: {a.end} has another architecture than {a.start}, nor a widening of it: {e}"
                              ) from None
+        with torch.no_grad():  # as the fine-tuning set them from its data; A's weights on an added ring are zero
+            start.rel_scale[:, ring:] = end.rel_scale[:, ring:]
     task = get_task(meta["task"])
     if task.custom:
         raise SystemExit(f"{a.start}: task {task.name!r} has its own evaluation; blend_checkpoints.py takes "
@@ -100,8 +103,8 @@ def main(argv=None) -> dict:
     cmd = "python scripts/blend_checkpoints.py " + " ".join(
         shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
     out = dict(meta)
-    out.update(architecture=end_meta["architecture"], n_parameters=end_meta["n_parameters"], metrics=metrics, command=cmd, data_hash=data["meta"]["data_hash"],
-               init_from=provenance(a.start, meta),
+    out.update(architecture=end_meta["architecture"], n_parameters=end_meta["n_parameters"], metrics=metrics,
+               command=cmd, data_hash=data["meta"]["data_hash"], init_from=provenance(a.start, meta),
                blend={"alpha": a.alpha, "start": provenance(a.start, meta), "end": provenance(a.end, end_meta),
                       "fresh": fresh})
     out["check"] = recorded_check(model, out, a.duration, a.data_dir)

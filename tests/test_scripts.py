@@ -781,7 +781,8 @@ def test_refine_surrogate_keeps_the_weights_the_fresh_variants_score_best(tmp_pa
 def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
     """``--alpha 0.25``: each parameter is 0.75 A + 0.25 B, the scales A's; the fresh scores of A, B and the blend
     are those ``fresh_score`` gives them; the metadata names both parents; another task, other scales and an alpha
-    outside [0, 1] are refused. A B with a mixing head A lacks blends with A widened to it; B narrower is refused."""
+    outside [0, 1] are refused. A B with a mixing head and a ring A lacks blends with A widened to it; B narrower is
+    refused."""
     import copy
     from dataclasses import replace
 
@@ -823,10 +824,12 @@ def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
     script_fails(args[:2] + [str(ROOT / "checkpoints" / "magnetic_rod.pt"), "--alpha", "0.5", "--out", "x.pt"],
                  tmp_path, "task 'magnetic_rod'")
     script_fails(args + ["--alpha", "1.5", "--out", "x.pt"], tmp_path, "--alpha")
-    # B fine-tuned with a mixing head A lacks: A is first widened as the fine-tuning started, the blend is B's kind
-    wide = a_model.widened_to(replace(a_model.config, mix=1, mix_width=4))
+    # B fine-tuned with a mixing head and a ring A lacks: A is first widened as the fine-tuning started (the ring's
+    # offset scales B's, from its data), the blend is B's kind
+    wide = a_model.widened_to(replace(a_model.config, mix=1, mix_width=4).with_stencil(2))
     w_model = copy.deepcopy(wide)
     with torch.no_grad():
+        w_model.rel_scale[:, 6:] = 1.7 * a_model.rel_scale
         for p in w_model.parameters():
             p.add_(0.05 * torch.randn(p.shape, generator=g) * p.abs().mean())
     w_meta = {**meta, "architecture": w_model.config.to_dict(),
@@ -834,7 +837,8 @@ def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
     save_checkpoint(tmp_path / "w.pt", w_model, w_meta)
     run_script(args[:2] + ["w.pt", *args[3:], "--alpha", "0.5", "--out", "mw.pt"], tmp_path)
     model, mw_meta = load_checkpoint(tmp_path / "mw.pt")
-    assert (model.config.mix, model.config.mix_width) == (1, 4)
+    assert (model.config.mix, model.config.mix_width, model.config.stencil) == (1, 4, 2)
+    assert torch.equal(model.rel_scale, w_model.rel_scale)
     assert mw_meta["architecture"] == load_checkpoint(tmp_path / "w.pt")[1]["architecture"]
     params = dict(model.named_parameters())
     for (k, pa), pb in zip(wide.named_parameters(), w_model.parameters()):
