@@ -10,6 +10,8 @@ second-difference scale, the same for every node, so the loss weighs millimetres
 """
 from __future__ import annotations
 
+import atexit
+
 import lightning as L
 import torch
 from torch.utils.data import DataLoader
@@ -244,10 +246,23 @@ class SurrogateModule(L.LightningModule):
             for p in self.model.parameters():
                 p.grad = None
 
+    def setup(self, stage: str):
+        """Under DDP on CPU (gloo) close the process group when the process exits. Lightning closes only
+        NCCL groups; a gloo group left open can abort the process at exit ("terminate called without an
+        active exception", SIGABRT) after training has finished."""
+        dist = torch.distributed
+        if dist.is_available() and dist.is_initialized() and dist.get_backend() == "gloo":
+            atexit.register(_close_process_group)
+
     def configure_optimizers(self):
         opt = torch.optim.AdamW(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, self.max_epochs), eta_min=self.lr * 0.05)
         return {"optimizer": opt, "lr_scheduler": sched}
+
+
+def _close_process_group():
+    if torch.distributed.is_initialized():
+        torch.distributed.destroy_process_group()
 
 
 class RolloutSelection(L.Callback):
