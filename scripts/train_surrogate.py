@@ -227,9 +227,9 @@ SCALES = ("length_scale", "disp_scale", "rel_scale", "v_scale", "a_scale", "f_sc
 def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, data: dict, dm, path: str,
                keep_scales: bool = False) -> dict:
     """Fine-tuning: ``model`` takes ``init``'s weights, scales included, and starts a run with its own
-    schedule; a wider head, stencil or mix of ``model`` is added to them first (:meth:`NodeLSTMSurrogate.widen`), the
-    added ring's offset scales from the data, and the neighbours' outputs projected to its ``mix_width``
-    (:meth:`NodeLSTMSurrogate.with_mix_width`). The checkpoint's scales must fit this run's data: the same data
+    schedule; ``init`` is first grown into ``model``'s architecture (:meth:`NodeLSTMSurrogate.widened_to`: a wider
+    head, stencil or mix, the neighbours' outputs projected to its ``mix_width``), an added ring's offset scales
+    from the data. The checkpoint's scales must fit this run's data: the same data
     hash, or (regenerated data can differ in its last bits, for example on another machine) the scales this
     data gives within 1e-5, over the variants the checkpoint's own run trained on (with or without
     --val-fresh, with its --val-tail), unless ``keep_scales``. Returns the provenance the new checkpoint records
