@@ -1015,6 +1015,27 @@ def test_a_runaway_rollout_on_one_ddp_process_is_skipped_by_all(tiny, monkeypatc
     assert not all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
 
 
+def test_a_gloo_process_group_is_closed_when_the_training_process_exits(tiny, tmp_path, monkeypatch):
+    """Under DDP on the CPU the module closes the gloo group at exit (Lightning closes only NCCL groups; one left
+    open aborted a worker at exit, SIGABRT); with no process group it registers nothing."""
+    from cmlearn.surrogate import training
+    dist = torch.distributed
+    *_, module = tiny_training(tiny, 1)
+    registered = []
+    monkeypatch.setattr(training.atexit, "register", registered.append)
+    module.setup("fit")
+    assert registered == []
+    dist.init_process_group("gloo", init_method=(tmp_path / "store").as_uri(), rank=0, world_size=1)
+    try:
+        module.setup("fit")
+        assert registered == [training._close_process_group]
+        registered[0]()
+        assert not dist.is_initialized()
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+
+
 def test_checkpoint_round_trip_and_clear_errors(tmp_path):
     task = get_task("semicircle")
     model = tiny_model(task)
