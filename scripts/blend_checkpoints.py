@@ -9,9 +9,10 @@ A and B must be of one task with the same scales (as a refinement or fine-tuning
 A's architecture or a widening of it (a wider head, stencil or mix): then A is first widened as the fine-tuning
 started (``NodeLSTMSurrogate.widened_to``; an added ring's offset scales B's), and the blend has B's architecture.
 The blend is evaluated as ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes, on
-``--variants`` variants of seed ``--seed``: by default A's own data) and, with ``--val-seed``, scored with A and B on ``--val-variants`` fresh variants (``rank_checkpoints.py``'s
-score). It is written with A's metadata, its new metrics, this command, ``init_from`` (A's provenance) and ``blend``
-(alpha, A's and B's provenance, the fresh scores). Position tasks only. Ends with one JSON line.
+``--variants`` variants of seed ``--seed``: by default A's own data) and, with ``--val-seed``, scored with A and B on
+``--val-variants`` fresh variants (``rank_checkpoints.py``'s score). It is written with A's metadata, its new
+metrics, this command, ``init_from`` (A's provenance) and ``blend`` (alpha, A's and B's provenance, the fresh
+scores). Position tasks only. Ends with one JSON line.
 """
 from __future__ import annotations
 
@@ -73,14 +74,11 @@ def main(argv=None) -> dict:
     if end_meta["task"] != meta["task"]:
         raise SystemExit(f"end: {a.end} is of task {end_meta['task']!r}, {a.start} of {meta['task']!r}")
     if end_meta["architecture"] != meta["architecture"]:
-        ring = 6 * start.config.stencil
-        try:
-            start = start.widened_to(end.config)
+        try:  # an added ring's offset scales B's, as its fine-tuning set them from its data
+            start = start.widened_to(end.config, ring_scales=end.rel_scale)
         except ValueError as e:
             raise SystemExit(f"end: {a.end} has another architecture than {a.start}, nor a widening of it: {e}"
                              ) from None
-        with torch.no_grad():  # as the fine-tuning set them from its data; A's weights on an added ring are zero
-            start.rel_scale[:, ring:] = end.rel_scale[:, ring:]
     task = get_task(meta["task"])
     if task.custom:
         raise SystemExit(f"{a.start}: task {task.name!r} has its own evaluation; blend_checkpoints.py takes "

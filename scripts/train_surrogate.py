@@ -248,8 +248,7 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
             raise SystemExit(f"--init-from: {path} was trained on data {meta.get('data_hash')}, this run's data is "
                              f"{data['meta']['data_hash']} and its scales differ by up to {off:.1e} (relative; "
                              "--keep-scales keeps the checkpoint's)")
-    model.load_state_dict(init.widened_to(model.config).state_dict())
-    model.rel_scale[:, ring:] = fresh.rel_scale[:, ring:]
+    model.load_state_dict(init.widened_to(model.config, ring_scales=fresh.rel_scale).state_dict())
     return {**provenance(path, meta), "scales_off": off}
 
 

@@ -529,12 +529,13 @@ class NodeLSTMSurrogate(nn.Module):
         wide.load_state_dict(state)
         return wide.train(self.training)
 
-    def widened_to(self, config: NodeLSTMConfig) -> "NodeLSTMSurrogate":
+    def widened_to(self, config: NodeLSTMConfig, ring_scales: Tensor | None = None) -> "NodeLSTMSurrogate":
         """This model in the architecture ``config``, stepping as this model does: ``config`` may differ from this
         model's only in what has no weights (the chord projection, the rest anchor and its shape, the mirrors) and
         in a wider head, stencil or mix (:meth:`widen`, the neighbours' outputs then projected to its ``mix_width``
         by :meth:`with_mix_width`). Where a fine-tuning run (``train_surrogate.py --init-from``) grows a model, this
-        is its starting point (but for an added ring's offset scales, which the run sets from its data).
+        is its starting point. An added ring's offset scales are taken from ``ring_scales`` (a ``rel_scale`` of
+        ``config``'s stencil, e.g. from a run's data) where given, else they start at 1 (:meth:`widen`).
         ValueError naming both architectures otherwise."""
         c = self.config
         grown = replace(c, chord_projection=config.chord_projection, rest_anchor=config.rest_anchor,
@@ -549,6 +550,10 @@ class NodeLSTMSurrogate(nn.Module):
             wide = wide.with_mix_width(config.mix_width)
         out = NodeLSTMSurrogate(config).to(self.length_scale.device)
         out.load_state_dict(wide.state_dict())
+        if ring_scales is not None:
+            ring = 6 * c.stencil  # the offset scales this model holds; those after them are an added ring's
+            with torch.no_grad():
+                out.rel_scale[:, ring:] = ring_scales[:, ring:]
         return out.train(self.training)
 
     @property
