@@ -2,6 +2,7 @@
 import csv
 import hashlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -845,3 +846,62 @@ def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
         assert torch.allclose(params[k], 0.5 * pa + 0.5 * pb, rtol=1e-6, atol=1e-7), k
     script_fails(args[:1] + ["w.pt", str(ck), *args[3:], "--alpha", "0.5", "--out", "x.pt"], tmp_path,
                  "nor a widening of it")  # the other way round: B narrower than A
+
+
+@pytest.mark.parametrize("conservative", [False, True])
+def test_position_only_step_is_reversible_volume_preserving_and_symmetric(conservative):
+    """The study's step (scripts/study_position_only_step.py) has what its docstring claims for any weights: run back
+    from its last two frames it retraces them, its map of (previous, current) frames has Jacobian determinant 1, it is
+    zero at the rest shape and it commutes with the mirror (x -> -x, nodes reversed)."""
+    mod = load_script("study_position_only_step")
+    torch.manual_seed(0)
+    n = 9
+    theta = torch.linspace(0, 2 * math.pi, n, dtype=torch.float64)
+    rest = torch.stack([0.2 * torch.sin(theta), -0.2 * (1 - torch.cos(theta)), torch.zeros(n, dtype=torch.float64)], -1)
+    model = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative).double()
+    inner = torch.zeros(1, n, 1, dtype=torch.float64)
+    inner[:, 1:-1] = 1.0
+    p0 = rest[None] + 0.02 * torch.randn(1, n, 3, dtype=torch.float64) * inner
+    p1 = p0 + 0.002 * torch.randn(1, n, 3, dtype=torch.float64) * inner
+    with torch.no_grad():
+        fwd = model.rollout(p0, p1, 60)
+        back = model.rollout(fwd[:, -1], fwd[:, -2], 60)
+        assert (fwd[:, -1] - p1).abs().max() > 1e-3  # it moved
+        assert torch.allclose(back[:, -2], p1, atol=1e-11) and torch.allclose(back[:, -1], p0, atol=1e-11)
+        assert model.accel(rest[None]).abs().max() < 1e-15
+        mirrored = lambda p: p[:, model.flip] * model.mirror  # noqa: E731
+        a, am = model.accel(p1), model.accel(mirrored(p1))
+        assert a.abs().max() > 1e-6
+        assert torch.allclose(am, a[:, model.flip_mod] * model.mirror, atol=1e-14)
+
+    def step(x):  # (previous, current) modelled coordinates -> (current, next)
+        prev, cur = rest[None].clone(), rest[None].clone()
+        prev[:, 1:-1], cur[:, 1:-1] = x[:21].reshape(1, 7, 3), x[21:].reshape(1, 7, 3)
+        nxt = model.rollout(prev, cur, 1)[:, 0]
+        return torch.cat([cur[:, 1:-1].reshape(-1), nxt[:, 1:-1].reshape(-1)])
+
+    x = torch.cat([p0[0, 1:-1].reshape(-1), p1[0, 1:-1].reshape(-1)])
+    assert abs(float(torch.linalg.det(torch.autograd.functional.jacobian(step, x))) - 1.0) < 1e-12
+
+
+@pytest.mark.parametrize("conservative", [False, True])
+def test_position_only_step_force_is_a_gradient_only_when_conservative(conservative):
+    """With ``conservative`` the study's second difference is minus a gradient: its Jacobian in the modelled
+    positions is symmetric; without, it is not."""
+    mod = load_script("study_position_only_step")
+    torch.manual_seed(1)
+    n = 9
+    theta = torch.linspace(0, 2 * math.pi, n, dtype=torch.float64)
+    rest = torch.stack([0.2 * torch.sin(theta), -0.2 * (1 - torch.cos(theta)), torch.zeros(n, dtype=torch.float64)], -1)
+    model = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative).double().eval()
+    p = rest[None].clone()
+    p[:, 1:-1] += 0.02 * torch.randn(1, n - 2, 3, dtype=torch.float64)
+
+    def accel(x):
+        q = p.clone()
+        q[:, 1:-1] = x.reshape(1, n - 2, 3)
+        return model.accel(q).reshape(-1)
+
+    J = torch.autograd.functional.jacobian(accel, p[0, 1:-1].reshape(-1))
+    asym = float((J - J.t()).abs().max() / J.abs().max())
+    assert asym < 1e-10 if conservative else asym > 1e-3
