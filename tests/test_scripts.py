@@ -848,6 +848,12 @@ def test_blend_checkpoints_lerps_the_weights_and_keeps_the_scales(tmp_path):
                  "nor a widening of it")  # the other way round: B narrower than A
 
 
+def _loop_rest(n: int) -> torch.Tensor:
+    """A circle of ``n`` nodes whose ends meet at the origin, symmetric under x -> -x with the nodes reversed."""
+    theta = torch.linspace(0, 2 * math.pi, n, dtype=torch.float64)
+    return torch.stack([0.2 * torch.sin(theta), -0.2 * (1 - torch.cos(theta)), torch.zeros(n, dtype=torch.float64)], -1)
+
+
 @pytest.mark.parametrize("conservative", [False, True])
 def test_position_only_step_is_reversible_volume_preserving_and_symmetric(conservative):
     """The study's step (scripts/study_position_only_step.py) has what its docstring claims for any weights: run back
@@ -856,8 +862,7 @@ def test_position_only_step_is_reversible_volume_preserving_and_symmetric(conser
     mod = load_script("study_position_only_step")
     torch.manual_seed(0)
     n = 9
-    theta = torch.linspace(0, 2 * math.pi, n, dtype=torch.float64)
-    rest = torch.stack([0.2 * torch.sin(theta), -0.2 * (1 - torch.cos(theta)), torch.zeros(n, dtype=torch.float64)], -1)
+    rest = _loop_rest(n)
     model = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative).double()
     inner = torch.zeros(1, n, 1, dtype=torch.float64)
     inner[:, 1:-1] = 1.0
@@ -891,8 +896,7 @@ def test_position_only_step_force_is_a_gradient_only_when_conservative(conservat
     mod = load_script("study_position_only_step")
     torch.manual_seed(1)
     n = 9
-    theta = torch.linspace(0, 2 * math.pi, n, dtype=torch.float64)
-    rest = torch.stack([0.2 * torch.sin(theta), -0.2 * (1 - torch.cos(theta)), torch.zeros(n, dtype=torch.float64)], -1)
+    rest = _loop_rest(n)
     model = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative).double().eval()
     p = rest[None].clone()
     p[:, 1:-1] += 0.02 * torch.randn(1, n - 2, 3, dtype=torch.float64)
