@@ -11,7 +11,7 @@ LGVI's, keeps the amplitude its start gives it. What it gives up is the history:
 positions alone are not the rod's state (the untracked nodes and the frames' rotations vibrate at up to several Hz).
 Reversibility does not stop a force field that is not a gradient from doing work around a closed path and so pumping
 energy into the swing; with ``--conservative`` the second difference is minus the gradient of a learned energy (the
-network's scalar output summed over the nodes), so the step is Stormer-Verlet in a potential and keeps a modified
+network's scalar output summed over the nodes and both mirror images), so the step is Stormer-Verlet in a potential and keeps a modified
 energy, as the LGVI keeps its own.
 
 Trained with the rollout loss (squared error of every modelled node, mm) over a schedule of horizons on the task's
@@ -21,7 +21,13 @@ evaluated as the shipped models are: node 30's y free-running from the printed l
 from rest, and the fresh loops of seeds 1-3 from rest (mean over the loops of the max, and the mean error).
 The last line is JSON with each stage's figures.
 
-    python scripts/study_position_only_step.py --minutes 30 --horizons 16:400,64:400,256:300,1024:150
+The best model of the study (the docs section has every run): 811 s to horizon 256, then a fine-tuning at 1024
+steps from that stage's checkpoint
+
+    python scripts/study_position_only_step.py --conservative --lowpass 1 --horizons 16:300,64:300,256:200 \
+      --threads 1 --out runs/cons.pt
+    python scripts/study_position_only_step.py --conservative --lowpass 1 --init runs/cons.pt --horizons 1024:150 \
+      --lr 2e-4 --batch 16 --threads 2 --out runs/cons_ft.pt
 """
 from __future__ import annotations
 
