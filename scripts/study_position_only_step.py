@@ -16,7 +16,7 @@ energy, as the LGVI keeps its own.
 
 Trained with the rollout loss (squared error of every modelled node, mm) over a schedule of horizons on the task's
 32 loops (the printed loop's first 60 %, loops 1-30 in full), optionally on trajectories low-passed in time
-(``--lowpass`` Hz, zero phase, mirrored at the start, where the loop is at rest and its motion even in time), and
+(``--lowpass`` Hz, zero phase, mirrored at both ends: at the release the motion is even in time), and
 evaluated as the shipped models are: node 30's y free-running from the printed loop's 60 % cut, the held-out loop
 from rest, and the fresh loops of seeds 1-3 from rest (mean over the loops of the max, and the mean error).
 The last line is JSON with each stage's figures.
@@ -118,7 +118,8 @@ class PositionOnlyStep(nn.Module):
 
 
 def lowpassed(p: Tensor, hz: float, rate: float) -> Tensor:
-    """Trajectories (V, T, n, 3) low-passed along time (4th-order Butterworth, zero phase, mirrored at the start)."""
+    """Trajectories (V, T, n, 3) low-passed along time (4th-order Butterworth, zero phase, padded by mirroring at
+    both ends: at the start, a release from rest, the motion is even in time); the anchors kept."""
     from scipy.signal import butter, sosfiltfilt
     sos = butter(4, hz, fs=rate, output="sos")
     out = torch.from_numpy(sosfiltfilt(sos, p.double().numpy(), axis=1, padtype="even").copy()).to(p.dtype)
