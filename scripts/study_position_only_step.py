@@ -46,6 +46,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cmlearn.data import cached_dataset  # noqa: E402
 from cmlearn.data.generate import reference_rollout  # noqa: E402
 from cmlearn.data.tasks import _loop_equilibrium, get_task  # noqa: E402
+from cmlearn.data.windows import split_ranges  # noqa: E402
+from cmlearn.io import save_torch_atomic  # noqa: E402
 
 INTEREST = 15  # node 30 in the tracked list
 
@@ -183,7 +185,8 @@ def main(argv=None) -> dict:
     raw = cached_dataset(task, 32, 0, a.data_dir)["positions"]
     P = lowpassed(raw, a.lowpass, 1.0 / task.delta) if a.lowpass else raw
     V, T, n = P.shape[:3]
-    cut = int(round(0.6 * (T - 1)))
+    train = split_ranges(V, T)["train"]  # the printed loop's first 60 %, loops 1 .. V-2 whole; the last left out
+    args = {k: v for k, v in vars(a).items() if k != "stages"}
     model = PositionOnlyStep(_loop_equilibrium(task.base_scene())[list(task.tracked)].float(), r=a.r,
                              hidden=a.hidden, conservative=a.conservative)
     if a.init:
@@ -195,7 +198,7 @@ def main(argv=None) -> dict:
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     t0, stages = time.time(), []
     for H, iters in a.stages:
-        ranges = [(0, 1, cut - H)] + [(v, 1, T - 1 - H) for v in range(1, V - 1)]  # the last loop is left out
+        ranges = [(v, first + 1, last - H) for v, first, last in train]  # start frames: one before, H after
         weight = torch.tensor([float(b - s) for _, s, b in ranges])
         for k in range(iters):
             if time.time() - t0 > a.minutes * 60:
@@ -219,14 +222,12 @@ def main(argv=None) -> dict:
             if k % 25 == 0:
                 print(f"horizon {H} iteration {k}: rollout rmse {loss.sqrt().item():.3f} mm, {time.time() - t0:.0f} s",
                       file=sys.stderr, flush=True)
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"state": model.state_dict(), "args": {k: v for k, v in vars(a).items() if k != "stages"}},
-                   a.out)
+        save_torch_atomic(a.out, {"state": model.state_dict(), "args": args})
         ev = evaluate(model, raw[0].float(), a.data_dir)
         stages.append({"horizon": H, "wall_s": round(time.time() - t0, 1),
                        **{k: [round(x, 2) for x in v] for k, v in ev.items()}})
         print(json.dumps(stages[-1]), file=sys.stderr, flush=True)
-    result = {"stages": stages, "args": {k: v for k, v in vars(a).items() if k != "stages"}}
+    result = {"stages": stages, "args": args}
     print(json.dumps(result))
     return result
 
