@@ -1,28 +1,32 @@
-"""Study (docs/surrogates.md, "A position-only step on Simulation I"): can a node step that cannot settle into a
-limit cycle keep Simulation I's swing where the LSTM surrogate does not?
+"""Study (docs/surrogates.md, "A position-only step on Simulation I" and "... on Simulation III"): can a node step
+that cannot settle into a limit cycle keep Simulation I's swing where the LSTM surrogate does not, and does it carry
+over to Simulation III's pushed semicircle?
 
-The step is ``p(t+1) = 2 p(t) - p(t-1) + a(p(t))``: the second difference of every modelled node is a function of
-the current frame only (each node's offsets to its ``r`` tracked neighbours on either side and its displacement, as
-changes from the loop's equilibrium circle, and a learned node embedding, through a tanh MLP shared by all nodes),
-mirror-symmetrised (x -> -x, nodes reversed) and zero at the circle. Whatever ``a`` is, the map
-``(p(t-1), p(t)) -> (p(t), p(t+1))`` is time-reversible (run from ``(p(t+1), p(t))`` it retraces its frames) and
-preserves phase-space volume (its Jacobian's determinant is 1), so it has no attractor: its swing, like the undamped
-LGVI's, keeps the amplitude its start gives it. What it gives up is the history: at the 10 ms step the tracked
-positions alone are not the rod's state (the untracked nodes and the frames' rotations vibrate at up to several Hz).
-Reversibility does not stop a force field that is not a gradient from doing work around a closed path and so pumping
-energy into the swing; with ``--conservative`` the second difference is minus the gradient of a learned energy (the
-network's scalar output summed over the nodes and both mirror images), so the step is Stormer-Verlet in a potential and keeps a modified
-energy, as the LGVI keeps its own.
+The step is ``p(t+1) = 2 p(t) - p(t-1) + a(p(t)) + G F(t)``: the second difference of every modelled node is a
+function of the current frame only (each node's offsets to its ``r`` tracked neighbours on either side and its
+displacement, as changes from the scene's equilibrium (the loop's circle, the semicircle), and a learned node
+embedding, through a tanh MLP shared by all nodes), symmetrised over the task's mirrors (x -> -x with the nodes
+reversed; on the semicircle also z -> -z) and zero at the equilibrium; on the semicircle a learned constant map ``G``
+adds the force on node 51 (at each frame the mean of the dataset's interval forces either side). Whatever ``a`` and
+``G`` are, the map ``(p(t-1), p(t)) -> (p(t), p(t+1))`` is time-reversible (run from ``(p(t+1), p(t))`` with the
+force played backwards it retraces its frames) and preserves phase-space volume (its Jacobian's determinant is 1), so
+it has no attractor: its swing, like the undamped LGVI's, keeps the amplitude its start gives it. What it gives up is
+the history: at the 10 ms step the tracked positions alone are not the rod's state (the untracked nodes and the
+frames' rotations vibrate at up to several Hz). Reversibility does not stop a force field that is not a gradient
+from doing work around a closed path and so pumping energy into the swing; with ``--conservative`` the second
+difference is minus the gradient of a learned energy (the network's scalar output summed over the nodes and all
+mirror images), so the step is Stormer-Verlet in a potential and keeps a modified energy, as the LGVI keeps its own.
 
 Trained with the rollout loss (squared error of every modelled node, mm) over a schedule of horizons on the task's
-32 loops (the printed loop's first 60 %, loops 1-30 in full), optionally on trajectories low-passed in time
-(``--lowpass`` Hz, zero phase, mirrored at both ends: at the release the motion is even in time), and
-evaluated as the shipped models are: node 30's y free-running from the printed loop's 60 % cut, the held-out loop
-from rest, and the fresh loops of seeds 1-3 from rest (mean over the loops of the max, and the mean error).
-The last line is JSON with each stage's figures.
+variants of seed 0 (the printed scene's first 60 %, the others but the last in full; ``--variants 1``: the printed
+scene alone), optionally on trajectories low-passed in time (``--lowpass`` Hz, zero phase, mirrored at both ends: at
+the release the motion is even in time), and evaluated as the shipped models are: the node of interest (node 30, y;
+node 51, y and z) free-running from the printed scene's 60 % cut, the held-out scene from rest, and the fresh
+variants of seeds 1-3 from rest (their score as ``rank_checkpoints.py``'s: the mean over the variants of the largest
+axis's max error; and the mean error). The last line is JSON with each stage's figures.
 
-The best model of the study (the docs section has every run): 811 s to horizon 256, then a fine-tuning at 1024
-steps from that stage's checkpoint
+The best Simulation I model of the study (the docs section has every run): 811 s to horizon 256, then a fine-tuning
+at 1024 steps from that stage's checkpoint
 
     python scripts/study_position_only_step.py --conservative --lowpass 1 --horizons 16:300,64:300,256:200 \
       --threads 1 --out runs/cons.pt
@@ -45,78 +49,135 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cmlearn.data import cached_dataset  # noqa: E402
 from cmlearn.data.generate import reference_rollout  # noqa: E402
-from cmlearn.data.tasks import _loop_equilibrium, get_task  # noqa: E402
+from cmlearn.data.tasks import get_task  # noqa: E402
 from cmlearn.data.windows import split_ranges  # noqa: E402
 from cmlearn.io import save_torch_atomic  # noqa: E402
+from cmlearn.surrogate.evaluate import interest_slots  # noqa: E402
 
-INTEREST = 15  # node 30 in the tracked list
+def mirror_group(mirrors: dict, n: int) -> list[tuple[tuple[float, float, float], list[int]]]:
+    """The reflections ``mirrors`` (as :attr:`SurrogateTask.mirrors`: ``{"x": "reversed"}`` is x -> -x with the
+    nodes' order reversed, ``{"z": "same"}`` z -> -z with it kept) and all their products, the identity first: the
+    axis signs and the node order of each element of the group they generate."""
+    group = [((1.0, 1.0, 1.0), list(range(n)))]
+    for axis, kind in mirrors.items():
+        if axis not in "xyz" or len(axis) != 1 or kind not in ("same", "reversed"):
+            raise ValueError(f"mirrors: {axis!r}: {kind!r} is not an axis letter with 'same' or 'reversed'")
+        sign = tuple(-1.0 if a == axis else 1.0 for a in "xyz")
+        for s, order in list(group):
+            group.append((tuple(a * b for a, b in zip(s, sign)), order[::-1] if kind == "reversed" else order))
+    return group
 
 
 class PositionOnlyStep(nn.Module):
-    """The step of the module docstring for a chain of ``n`` tracked nodes whose first and last are anchors."""
+    """The step of the module docstring for a chain of ``n`` tracked nodes whose first and last are anchors.
+
+    ``rest`` (n, 3): the shape the second difference vanishes at, symmetric under ``mirrors`` (see
+    :func:`mirror_group`: a reflection maps the frame ``p`` to ``rest + S (p - rest)[order]``). ``force_slot``: the
+    tracked node an external force acts on (fixed by every reflection); its effect on the second difference is
+    ``G F``, a learned constant (K, 3, 3) map symmetrised over the mirrors, ``g_scale`` (m/N) times the identity on
+    that node at the start (a lumped mass ``delta^2 / g_scale``). Being independent of the positions it keeps the
+    step reversible (with the force played backwards) and volume-preserving."""
 
     def __init__(self, rest: Tensor, r: int = 3, hidden: int = 128, depth: int = 2, embedding: int = 8,
-                 d_scale: float = 0.05, p_scale: float = 0.2, a_scale: float = 1e-3, conservative: bool = False):
+                 d_scale: float = 0.05, p_scale: float = 0.2, a_scale: float = 1e-3, conservative: bool = False,
+                 mirrors: dict | None = None, force_slot: int | None = None, g_scale: float = 1e-2):
         super().__init__()
         self.conservative = conservative
         n = rest.shape[0]
         mod = list(range(1, n - 1))
+        group = mirror_group({"x": "reversed"} if mirrors is None else mirrors, n)
+        slot = {k: i for i, k in enumerate(mod)}
+        if force_slot is not None and any(order[force_slot] != force_slot for _, order in group):
+            raise ValueError(f"force_slot {force_slot} is moved by the mirrors {mirrors!r}")
         self.register_buffer("rest", rest.clone())
         self.register_buffer("mod", torch.tensor(mod))
         self.register_buffer("nbr", torch.tensor([[min(max(k + o, 0), n - 1) for o in range(-r, r + 1) if o]
                                                   for k in mod]))  # (K, 2 r), clamped at the anchors
-        self.register_buffer("flip", torch.arange(n - 1, -1, -1))
-        self.register_buffer("flip_mod", torch.tensor([n - 2 - k for k in mod]))  # slot of a node's mirror image
-        self.register_buffer("mirror", torch.tensor([-1.0, 1.0, 1.0]))
-        self.d_scale, self.p_scale, self.a_scale = d_scale, p_scale, a_scale
+        self.register_buffer("signs", torch.tensor([s for s, _ in group]))  # (G, 3)
+        self.register_buffer("orders", torch.tensor([o for _, o in group]))  # (G, n)
+        self.register_buffer("orders_mod", torch.tensor([[slot[o[k]] for k in mod] for _, o in group]))  # (G, K)
+        self.d_scale, self.p_scale, self.a_scale, self.g_scale = d_scale, p_scale, a_scale, g_scale
+        self.force_slot = force_slot
         self.emb = nn.Parameter(torch.randn(len(mod), embedding) * 0.1)
+        self.G = None
+        if force_slot is not None:  # starts as a lumped mass: the force accelerates its own node only
+            self.G = nn.Parameter(torch.zeros(len(mod), 3, 3))
+            with torch.no_grad():
+                self.G[slot[force_slot]] = torch.eye(3)
         layers, w = [], 2 * r * 3 + 3 + embedding
         for _ in range(depth):
             layers += [nn.Linear(w, hidden), nn.Tanh()]
             w = hidden
         self.net = nn.Sequential(*layers, nn.Linear(w, 1 if conservative else 3))
 
+    def reflect(self, p: Tensor, g: int) -> Tensor:
+        """Frames (B, n, 3) under the group's element ``g``."""
+        return self.rest + (p - self.rest)[:, self.orders[g]] * self.signs[g]
+
+    def reflect_accel(self, a: Tensor, g: int) -> Tensor:
+        """Second differences (B, K, 3) of the modelled nodes under the group's element ``g``."""
+        return a[:, self.orders_mod[g]] * self.signs[g]
+
     def _raw(self, p: Tensor) -> Tensor:
         off = p[:, self.nbr] - p[:, self.mod, None] - (self.rest[self.nbr] - self.rest[self.mod, None])
         u = (p[:, self.mod] - self.rest[self.mod]) / self.p_scale
         return self.net(torch.cat([(off / self.d_scale).flatten(2), u, self.emb.expand(p.shape[0], -1, -1)], -1))
 
-    def _symmetric(self, p: Tensor) -> Tensor:
-        a, am = self._raw(torch.cat([p, p[:, self.flip] * self.mirror])).chunk(2)
-        return 0.5 * (a + am[:, self.flip_mod] * self.mirror)
+    def _all_images(self, p: Tensor) -> Tensor:
+        return torch.cat([self.reflect(p, g) for g in range(len(self.signs))])
 
     def _force(self, p: Tensor) -> Tensor:
+        G = len(self.signs)
         if not self.conservative:
-            return self._symmetric(p)
+            raw = self._raw(self._all_images(p)).chunk(G)
+            return sum(self.reflect_accel(a, g) for g, a in enumerate(raw)) / G
         keep = torch.is_grad_enabled()  # training: the force stays differentiable
-        with torch.enable_grad():  # minus the gradient of the summed node energies of both mirror images
+        with torch.enable_grad():  # minus the gradient of the summed node energies of all mirror images
             x = p if p.requires_grad else p.detach().requires_grad_(True)
-            energy = self._raw(torch.cat([x, x[:, self.flip] * self.mirror])).sum()
+            energy = self._raw(self._all_images(x)).sum()
             g = torch.autograd.grad(energy, x, create_graph=keep)[0]
-        return -0.5 * self.d_scale * g[:, self.mod]
+        return -self.d_scale / G * g[:, self.mod]
 
     def accel(self, p: Tensor) -> Tensor:
-        """The second difference (B, K, 3) in metres of frames (B, n, 3): mirror-symmetric, zero at ``rest``. With
-        ``conservative`` it is minus the gradient of a learned energy (the network's output summed over the nodes
-        and both mirror images) less its value at ``rest``: the force of the potential ``V(p) - grad V(rest) . p``."""
+        """The second difference (B, K, 3) in metres of frames (B, n, 3): symmetric under the mirrors, zero at
+        ``rest``. With ``conservative`` it is minus the gradient of a learned energy (the network's output summed
+        over the nodes and all mirror images) less its value at ``rest``: the force of the potential
+        ``V(p) - grad V(rest) . p``."""
         return (self._force(p) - self._force(self.rest[None])) * self.a_scale
 
-    def rollout(self, prev: Tensor, cur: Tensor, n: int) -> Tensor:
-        """``n`` frames (B, n, n_tracked, 3) after ``prev``, ``cur`` (B, n_tracked, 3); the anchors stay put."""
+    def forcing(self, force: Tensor) -> Tensor:
+        """The external force's second difference (B, K, 3) for the force (B, 3) on ``force_slot`` (N)."""
+        G = sum(self.signs[g][:, None] * self.G[self.orders_mod[g]] * self.signs[g] for g in range(len(self.signs)))
+        return torch.einsum("kij,bj->bki", G, force) * (self.g_scale / len(self.signs))
+
+    def rollout(self, prev: Tensor, cur: Tensor, n: int, force: Tensor | None = None) -> Tensor:
+        """``n`` frames (B, n, n_tracked, 3) after ``prev``, ``cur`` (B, n_tracked, 3); the anchors stay put.
+        ``force`` (B, n, 3): the force on ``force_slot`` at ``cur``'s time and each of the next n - 1 frames."""
         out = []
-        for _ in range(n):
+        for j in range(n):
+            a = self.accel(cur)
+            if force is not None:
+                a = a + self.forcing(force[:, j])
             nxt = cur.clone()
-            nxt[:, self.mod] = 2 * cur[:, self.mod] - prev[:, self.mod] + self.accel(cur)
+            nxt[:, self.mod] = 2 * cur[:, self.mod] - prev[:, self.mod] + a
             prev, cur = cur, nxt
             out.append(cur)
         return torch.stack(out, 1)
 
-    def from_rest(self, p0: Tensor, n: int) -> Tensor:
+    def from_rest(self, p0: Tensor, n: int, force: Tensor | None = None) -> Tensor:
         """``n`` frames after ``p0`` (B, n_tracked, 3) released at rest: the frame before is the one after
-        (``p(-h) = p(h)``), so the first step moves by half the second difference."""
+        without the external force (``p(-h) = p(h)`` for a release, ``p(-h) = p(0)`` at an equilibrium), so the
+        first step moves by half the elastic second difference."""
         prev = p0.clone()
         prev[:, self.mod] = p0[:, self.mod] - 0.5 * self.accel(p0)
-        return self.rollout(prev, p0, n)
+        return self.rollout(prev, p0, n, force)
+
+
+def centred(wrench: Tensor) -> Tensor:
+    """The force at each frame 0 .. T-2 (..., T-1, 3) from the forces at the interval midpoints (..., T-1, 3) (the
+    datasets' ``wrench``), their average either side, nothing before the first frame."""
+    pad = torch.cat([torch.zeros_like(wrench[..., :1, :]), wrench], -2)
+    return 0.5 * (pad[..., 1:, :] + pad[..., :-1, :])
 
 
 def lowpassed(p: Tensor, hz: float, rate: float) -> Tensor:
@@ -129,27 +190,81 @@ def lowpassed(p: Tensor, hz: float, rate: float) -> Tensor:
     return out
 
 
-def node_errors(pred: Tensor, true: Tensor) -> tuple[float, float]:
-    """Node 30's y error (mm): the mean over the batch of the max, and the mean."""
-    e = (pred[..., INTEREST, 1] - true[..., INTEREST, 1]).abs() * 1e3
-    return e.amax(-1).mean().item(), e.mean().item()
+# per task: training variants (seed 0), the default reflections, the fresh variant sets (count, seed; the first of
+# each is the printed scene, left out), the node of interest's axes reported, and the input scales (metres: neighbour
+# offsets, displacement, second difference)
+SPECS = {
+    "ellipse": dict(variants=32, mirrors="x", fresh=((5, 1), (5, 2), (9, 3)), axes="y",
+                    scales=dict(d_scale=0.05, p_scale=0.2, a_scale=1e-3)),
+    "semicircle": dict(variants=96, mirrors="xz", fresh=((17, 1), (17, 2), (17, 3)), axes="yz",
+                       scales=dict(d_scale=0.03, p_scale=0.05, a_scale=1e-4)),
+}
 
 
-@torch.no_grad()
-def evaluate(model: PositionOnlyStep, printed: Tensor, data_dir: str) -> dict:
-    task, cut = get_task("ellipse"), int(round(0.6 * (printed.shape[0] - 1)))
-    out = {"seen": node_errors(model.rollout(printed[None, cut - 1], printed[None, cut],
-                                             printed.shape[0] - 1 - cut)[0], printed[cut + 1:])}
-    held = reference_rollout(task, "ellipse_horizontal", data_dir=data_dir)[0].float()
-    out["held_out"] = node_errors(model.from_rest(held[None, 0], held.shape[0] - 1)[0], held[1:])
-    for n, seed in ((5, 1), (5, 2), (9, 3)):
-        q = cached_dataset(task, n, seed, data_dir)["positions"][1:].float()
-        out[f"fresh_seed{seed}"] = node_errors(model.from_rest(q[:, 0], q.shape[1] - 1), q[:, 1:])
-    return out
+def node_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> dict:
+    """The node of interest's error (mm) per axis of ``axes``: [the mean over the batch of the max, the mean]."""
+    e = (pred[..., slot, :] - true[..., slot, :]).abs() * 1e3  # (B, T, 3)
+    return {ax: [round(e[..., i].amax(-1).mean().item(), 2), round(e[..., i].mean().item(), 2)] for ax, i in
+            ((ax, "xyz".index(ax)) for ax in axes)}
+
+
+def fresh_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> list:
+    """[the mean over the variants of the largest error on any axis (``fresh_score``'s figure, mm), the mean error
+    over ``axes``]."""
+    e = (pred[..., slot, :] - true[..., slot, :]).abs() * 1e3
+    mean = e[..., ["xyz".index(ax) for ax in axes]].mean()
+    return [round(e.amax(1).amax(-1).mean().item(), 2), round(mean.item(), 2)]
+
+
+class Study:
+    """A task's data and evaluation for the study: the tracked rest shape, the node of interest's slot, the force
+    slot (the task's one wrench node, if any) and each case's trajectories with their centred forces."""
+
+    def __init__(self, name: str, data_dir: str, variants: int | None = None):
+        self.task, self.spec, self.data_dir = get_task(name), SPECS[name], data_dir
+        scene = self.task.base_scene()
+        eq = self.task.equilibrium(scene) if self.task.equilibrium else scene.initial_configuration()["p"]
+        self.rest = eq[list(self.task.tracked)].float()
+        self.slot = interest_slots(self.task, scene)[0]
+        if len(self.task.wrench_nodes) > 1:
+            raise ValueError(f"task {name!r}: the study takes one input-wrench node, not {self.task.wrench_nodes}")
+        self.force_slot = self.task.tracked.index(self.task.wrench_nodes[0]) if self.task.wrench_nodes else None
+        rod, n_mod = scene.rod, len(self.task.modeled)
+        self.g_scale = self.task.delta ** 2 * n_mod / (rod.line_mass * rod.length)  # m/N: the rod's mass shared
+        data = cached_dataset(self.task, variants or self.spec["variants"], 0, data_dir)
+        self.positions, self.force = data["positions"], self._force(data)
+
+    def _force(self, data: dict) -> Tensor | None:
+        return centred(data["wrench"][..., 0, :].float()) if self.force_slot is not None else None
+
+    @torch.no_grad()
+    def evaluate(self, model: PositionOnlyStep) -> dict:
+        """The node of interest free-running: on the printed scene from its 60 % cut, on the held-out scenes and
+        on the fresh variants from rest."""
+        axes, slot = self.spec["axes"], self.slot
+        P, F = self.positions[0].float(), self.force
+        cut = int(round(0.6 * (P.shape[0] - 1)))
+        out = {"seen": node_errors(model.rollout(P[None, cut - 1], P[None, cut], P.shape[0] - 1 - cut,
+                                                 None if F is None else F[:1, cut:])[0], P[cut + 1:], slot, axes)}
+        for name in self.task.heldout:
+            p, w, _ = reference_rollout(self.task, name, data_dir=self.data_dir)
+            f = self._force({"wrench": w[None]})
+            out[name] = node_errors(model.from_rest(p[None, 0].float(), p.shape[0] - 1, f)[0], p[1:].float(),
+                                    slot, axes)
+        for n, seed in self.spec["fresh"]:
+            d = cached_dataset(self.task, n, seed, self.data_dir)
+            q, f = d["positions"][1:].float(), self._force(d)
+            out[f"fresh_seed{seed}"] = fresh_errors(model.from_rest(q[:, 0], q.shape[1] - 1,
+                                                                    None if f is None else f[1:]),
+                                                    q[:, 1:], slot, axes)
+        return out
 
 
 def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--task", default="ellipse", choices=sorted(SPECS))
+    ap.add_argument("--variants", type=int, default=None, help="training variants of seed 0 (default: 32 on the "
+                    "ellipse, 96 on the semicircle; 1: the printed scene's first 60 %% alone, the thesis's protocol)")
     ap.add_argument("--minutes", type=float, default=20.0, help="wall-time budget of the training")
     ap.add_argument("--horizons", default="16:200,64:200,256:200,1024:100",
                     help="stages as HORIZON:ITERATIONS, each with its own cosine learning-rate schedule")
@@ -157,6 +272,8 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--hidden", type=int, default=128)
     ap.add_argument("--r", type=int, default=3, help="tracked neighbours on either side each node sees")
+    ap.add_argument("--mirrors", default=None, help="axis letters of the task's reflections the step is symmetric "
+                    "under (default: x on the ellipse, xz on the semicircle)")
     ap.add_argument("--noise", type=float, default=0.0, help="metres: one random shift of each start's two frames")
     ap.add_argument("--conservative", action="store_true",
                     help="the second difference is minus the gradient of a learned energy (no work around a cycle)")
@@ -167,9 +284,13 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--init", default="", help="start from this run's weights (its --out file)")
     ap.add_argument("--out", default="runs/position_only_step.pt")
     a = ap.parse_args(argv)
-    for name in ("minutes", "batch", "lr", "hidden", "r", "threads"):
-        if getattr(a, name) <= 0:
+    for name in ("minutes", "batch", "lr", "hidden", "r", "threads", "variants"):
+        if getattr(a, name) is not None and getattr(a, name) <= 0:
             ap.error(f"--{name} must be positive, got {getattr(a, name)}")
+    a.mirrors = SPECS[a.task]["mirrors"] if a.mirrors is None else a.mirrors
+    mirrors = get_task(a.task).mirrors
+    if len(set(a.mirrors)) != len(a.mirrors) or not set(a.mirrors) <= set(mirrors):
+        ap.error(f"--mirrors {a.mirrors!r}: task {a.task!r} has the reflections {sorted(mirrors)}, each at most once")
     try:
         a.stages = [(int(h), int(n)) for h, n in (s.split(":") for s in a.horizons.split(","))]
     except ValueError:
@@ -181,40 +302,47 @@ def main(argv=None) -> dict:
     a = parse(argv)
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
-    task = get_task("ellipse")
-    raw = cached_dataset(task, 32, 0, a.data_dir)["positions"]
-    P = lowpassed(raw, a.lowpass, 1.0 / task.delta) if a.lowpass else raw
+    study = Study(a.task, a.data_dir, a.variants)
+    raw, F = study.positions, study.force
+    P = lowpassed(raw, a.lowpass, 1.0 / study.task.delta) if a.lowpass else raw
     V, T, n = P.shape[:3]
-    train = split_ranges(V, T)["train"]  # the printed loop's first 60 %, loops 1 .. V-2 whole; the last left out
+    moving = (P.std(dim=(0, 1, 2)) > 0).float()  # the axes the data move along (the ellipse stays in its plane)
+    train = split_ranges(V, T)["train"]  # the printed scene's first 60 %, variants 1 .. V-2 whole; the last left out
     args = {k: v for k, v in vars(a).items() if k != "stages"}
-    model = PositionOnlyStep(_loop_equilibrium(task.base_scene())[list(task.tracked)].float(), r=a.r,
-                             hidden=a.hidden, conservative=a.conservative)
+    task_mirrors = study.task.mirrors
+    model = PositionOnlyStep(study.rest, r=a.r, hidden=a.hidden, conservative=a.conservative,
+                             mirrors={ax: task_mirrors[ax] for ax in a.mirrors}, force_slot=study.force_slot,
+                             g_scale=study.g_scale,
+                             **study.spec["scales"])
     if a.init:
         init = torch.load(a.init, weights_only=True)
-        arch = ("r", "hidden", "conservative")
-        if any(init["args"].get(k, False) != getattr(a, k) for k in arch):
-            raise SystemExit(f"--init {a.init}: its {arch} are {[init['args'].get(k, False) for k in arch]}")
+        arch = ("task", "r", "hidden", "conservative", "mirrors")
+        if any(init["args"].get(k) != getattr(a, k) for k in arch):
+            raise SystemExit(f"--init {a.init}: its {arch} are {[init['args'].get(k) for k in arch]}")
         model.load_state_dict(init["state"])
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     t0, stages = time.time(), []
     for H, iters in a.stages:
-        ranges = [(v, first + 1, last - H) for v, first, last in train]  # start frames: one before, H after
+        ranges = [(v, first + 1, last - H) for v, first, last in train if last - H > first + 1]  # one before, H after
+        if not ranges:
+            raise SystemExit(f"--horizons: no training window holds {H} steps after its start")
         weight = torch.tensor([float(b - s) for _, s, b in ranges])
         for k in range(iters):
             if time.time() - t0 > a.minutes * 60:
                 break
             for g in opt.param_groups:
                 g["lr"] = a.lr * 0.5 * (1 + math.cos(math.pi * k / iters)) + 1e-5
-            vs = torch.multinomial(weight, a.batch, replacement=True)
-            ts = torch.stack([torch.randint(ranges[v][1], ranges[v][2], ()) for v in vs.tolist()])
+            pick = torch.multinomial(weight, a.batch, replacement=True).tolist()
+            vs = torch.tensor([ranges[i][0] for i in pick])
+            ts = torch.stack([torch.randint(ranges[i][1], ranges[i][2], ()) for i in pick])
             prev, cur = P[vs, ts - 1], P[vs, ts]
             if a.noise:
-                z = torch.randn(a.batch, n, 3) * a.noise
+                z = torch.randn(a.batch, n, 3) * a.noise * moving
                 z[:, [0, -1]] = 0.0
-                z[..., 2] = 0.0
                 prev, cur = prev + z, cur + z
             true = torch.stack([P[vs, ts + j] for j in range(1, H + 1)], 1)
-            loss = ((model.rollout(prev, cur, H) - true)[:, :, 1:-1] * 1e3).pow(2).mean()
+            force = None if F is None else torch.stack([F[vs, ts + j] for j in range(H)], 1)
+            loss = ((model.rollout(prev, cur, H, force) - true)[:, :, 1:-1] * 1e3).pow(2).mean()
             opt.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -223,9 +351,8 @@ def main(argv=None) -> dict:
                 print(f"horizon {H} iteration {k}: rollout rmse {loss.sqrt().item():.3f} mm, {time.time() - t0:.0f} s",
                       file=sys.stderr, flush=True)
         save_torch_atomic(a.out, {"state": model.state_dict(), "args": args})
-        ev = evaluate(model, raw[0].float(), a.data_dir)
-        stages.append({"horizon": H, "wall_s": round(time.time() - t0, 1),
-                       **{k: [round(x, 2) for x in v] for k, v in ev.items()}})
+        ev = study.evaluate(model)
+        stages.append({"horizon": H, "wall_s": round(time.time() - t0, 1), **ev})
         print(json.dumps(stages[-1]), file=sys.stderr, flush=True)
     result = {"stages": stages, "args": args}
     print(json.dumps(result))

@@ -854,39 +854,80 @@ def _loop_rest(n: int) -> torch.Tensor:
     return torch.stack([0.2 * torch.sin(theta), -0.2 * (1 - torch.cos(theta)), torch.zeros(n, dtype=torch.float64)], -1)
 
 
+def _arch_rest(n: int) -> torch.Tensor:
+    """A semicircle of ``n`` nodes from (0, 0) to (0.2, 0) in the xy-plane, symmetric under x -> 0.2 - x with the
+    nodes reversed and under z -> -z."""
+    phi = torch.linspace(0, math.pi, n, dtype=torch.float64)
+    return torch.stack([0.1 * (1 - torch.cos(phi)), 0.1 * torch.sin(phi), torch.zeros(n, dtype=torch.float64)], -1)
+
+
 @pytest.mark.parametrize("conservative", [False, True])
-def test_position_only_step_is_reversible_volume_preserving_and_symmetric(conservative):
+@pytest.mark.parametrize("scene", ["loop", "arch"])
+def test_position_only_step_is_reversible_volume_preserving_and_symmetric(conservative, scene):
     """The study's step (scripts/study_position_only_step.py) has what its docstring claims for any weights: run back
-    from its last two frames it retraces them, its map of (previous, current) frames has Jacobian determinant 1, it is
-    zero at the rest shape and it commutes with the mirror (x -> -x, nodes reversed)."""
+    from its last two frames (the external force played backwards) it retraces them, its map of (previous, current)
+    frames has Jacobian determinant 1, it is zero at the rest shape and it commutes with every reflection of its
+    group: the loop's x -> -x with the nodes reversed; the arch's x -> 0.2 - x with the nodes reversed, z -> -z and
+    both at once, with a force on its middle node."""
     mod = load_script("study_position_only_step")
     torch.manual_seed(0)
     n = 9
-    rest = _loop_rest(n)
-    model = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative).double()
+    if scene == "loop":
+        rest, kw = _loop_rest(n), {}
+    else:
+        rest, kw = _arch_rest(n), {"mirrors": {"x": "reversed", "z": "same"}, "force_slot": 4}
+    model = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative, **kw).double()
+    assert len(model.signs) == (2 if scene == "loop" else 4)
+    if scene == "arch":
+        with torch.no_grad():
+            model.G.normal_()
     inner = torch.zeros(1, n, 1, dtype=torch.float64)
     inner[:, 1:-1] = 1.0
     p0 = rest[None] + 0.02 * torch.randn(1, n, 3, dtype=torch.float64) * inner
     p1 = p0 + 0.002 * torch.randn(1, n, 3, dtype=torch.float64) * inner
+    force = 0.05 * torch.randn(1, 60, 3, dtype=torch.float64) if scene == "arch" else None
     with torch.no_grad():
-        fwd = model.rollout(p0, p1, 60)
-        back = model.rollout(fwd[:, -1], fwd[:, -2], 60)
+        fwd = model.rollout(p0, p1, 60, force)
+        back = model.rollout(fwd[:, -1], fwd[:, -2], 60, None if force is None else force.flip(1))
         assert (fwd[:, -1] - p1).abs().max() > 1e-3  # it moved
         assert torch.allclose(back[:, -2], p1, atol=1e-11) and torch.allclose(back[:, -1], p0, atol=1e-11)
         assert model.accel(rest[None]).abs().max() < 1e-15
-        mirrored = lambda p: p[:, model.flip] * model.mirror  # noqa: E731
-        a, am = model.accel(p1), model.accel(mirrored(p1))
+        a = model.accel(p1)
         assert a.abs().max() > 1e-6
-        assert torch.allclose(am, a[:, model.flip_mod] * model.mirror, atol=1e-14)
+        for g in range(1, len(model.signs)):
+            assert torch.allclose(model.accel(model.reflect(p1, g)), model.reflect_accel(a, g), atol=1e-14)
+            if force is not None:
+                f = force[:, 0]
+                assert torch.allclose(model.forcing(f * model.signs[g]), model.reflect_accel(model.forcing(f), g),
+                                      atol=1e-14)
+                assert model.forcing(f).abs().max() > 1e-4
 
     def step(x):  # (previous, current) modelled coordinates -> (current, next)
         prev, cur = rest[None].clone(), rest[None].clone()
         prev[:, 1:-1], cur[:, 1:-1] = x[:21].reshape(1, 7, 3), x[21:].reshape(1, 7, 3)
-        nxt = model.rollout(prev, cur, 1)[:, 0]
+        nxt = model.rollout(prev, cur, 1, None if force is None else force[:, :1])[:, 0]
         return torch.cat([cur[:, 1:-1].reshape(-1), nxt[:, 1:-1].reshape(-1)])
 
     x = torch.cat([p0[0, 1:-1].reshape(-1), p1[0, 1:-1].reshape(-1)])
     assert abs(float(torch.linalg.det(torch.autograd.functional.jacobian(step, x))) - 1.0) < 1e-12
+
+
+def test_position_only_step_forces_at_frames():
+    """The study's force at a frame is the mean of the interval forces either side (none before the first), so a
+    force switched on at a frame of a body at rest moves it by half of it in the first step, as the exact motion
+    under a constant force does."""
+    mod = load_script("study_position_only_step")
+    w = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    assert torch.equal(mod.centred(w), torch.tensor([[0.5, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]))
+    rest = _arch_rest(9).float()
+    model = mod.PositionOnlyStep(rest, r=2, hidden=16, mirrors={"x": "reversed"}, force_slot=4)
+    with torch.no_grad():
+        model.G.normal_()
+        first = model.from_rest(rest[None], 1, mod.centred(w)[None])[0, 0]
+        assert torch.allclose(first[1:-1] - rest[1:-1], 0.5 * model.forcing(w[None, 0])[0], atol=1e-6)
+        assert (first - rest).abs().max() > 1e-4
+    with pytest.raises(ValueError, match="force_slot 3 is moved"):
+        mod.PositionOnlyStep(rest, mirrors={"x": "reversed"}, force_slot=3)
 
 
 @pytest.mark.parametrize("conservative", [False, True])
