@@ -23,7 +23,9 @@ scene alone), optionally on trajectories low-passed in time (``--lowpass`` Hz, z
 the release the motion is even in time), and evaluated as the shipped models are: the node of interest (node 30, y;
 node 51, y and z) free-running from the printed scene's 60 % cut, the held-out scene from rest, and the fresh
 variants of seeds 1-3 from rest (their score as ``rank_checkpoints.py``'s: the mean over the variants of the largest
-axis's max error; and the mean error). The last line is JSON with each stage's figures.
+axis's max error; and the mean error). The last line is JSON with each stage's figures and the low-pass floor (the
+low-passed printed scene's error against the LGVI's over its last 40 %). ``--linear`` fits and evaluates the best
+linear step of the same form instead (:class:`LinearStep`), with its fit's residual.
 
 The best Simulation I model of the study (the docs section has every run): 811 s to horizon 256, then a fine-tuning
 at 1024 steps from that stage's checkpoint
@@ -164,6 +166,10 @@ class PositionOnlyStep(nn.Module):
             out.append(cur)
         return torch.stack(out, 1)
 
+    def rollout_frames(self, prev: Tensor, cur: Tensor, n: int, force: Tensor | None = None) -> Tensor:
+        """:meth:`rollout`'s tracked positions (B, n, n_tracked, 3) from states :meth:`start` gives."""
+        return self.rollout(prev, cur, n, force)
+
     def from_rest(self, p0: Tensor, n: int, force: Tensor | None = None) -> Tensor:
         """``n`` frames after ``p0`` (B, n_tracked, 3) released at rest: the frame before is the one after
         without the external force (``p(-h) = p(h)`` for a release, ``p(-h) = p(0)`` at an equilibrium), so the
@@ -171,6 +177,109 @@ class PositionOnlyStep(nn.Module):
         prev = p0.clone()
         prev[:, self.mod] = p0[:, self.mod] - 0.5 * self.accel(p0)
         return self.rollout(prev, p0, n, force)
+
+    def start(self, frames: Tensor, force: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The (previous, current) state to roll out from after the true ``frames`` (B, T, n, 3) of a run from rest
+        under ``force`` (B, T - 1, 3): their last two."""
+        return frames[:, -2], frames[:, -1]
+
+
+class LatentStep(PositionOnlyStep):
+    """:class:`PositionOnlyStep` with ``latent`` unobserved coordinates per modelled node (zero at the anchors and at
+    rest), stepped with the positions by the same Verlet rule in the same learned energy: its network also sees each
+    node's own and its neighbours' latent coordinates, and a quadratic ``|z|^2 / 2`` per node keeps them bounded.
+    Their second difference is ``-latent_scale`` times the energy's gradient in them (a constant mass of their own),
+    so the map of (previous, current) states is still reversible and volume-preserving: without an attractor, but
+    with room for the modes the tracked positions do not hold. Conservative, without mirrors. States are frames
+    (B, n, 3 + latent); :meth:`start` estimates the latent part of a run's state by driving it with the true
+    positions from rest."""
+
+    def __init__(self, rest: Tensor, latent: int, latent_scale: float = 0.1, **kw):
+        super().__init__(rest, conservative=True, mirrors={}, **kw)
+        self.latent, self.latent_scale = latent, latent_scale
+        r, hidden = self.nbr.shape[1] // 2, self.net[0].out_features
+        depth, embedding = sum(isinstance(m, nn.Linear) for m in self.net) - 1, self.emb.shape[1]
+        layers, w = [], 2 * r * (3 + latent) + 3 + latent + embedding
+        for _ in range(depth):
+            layers += [nn.Linear(w, hidden), nn.Tanh()]
+            w = hidden
+        self.net = nn.Sequential(*layers, nn.Linear(w, 1))
+        self.register_buffer("rest_state", torch.cat([rest, rest.new_zeros(rest.shape[0], latent)], -1))
+
+    def state(self, p: Tensor) -> Tensor:
+        """Frames (..., n, 3) with the latent coordinates at rest."""
+        return torch.cat([p, p.new_zeros(*p.shape[:-1], self.latent)], -1)
+
+    def _raw(self, x: Tensor) -> Tensor:
+        p, z = x[..., :3], x[..., 3:]
+        off = p[:, self.nbr] - p[:, self.mod, None] - (self.rest[self.nbr] - self.rest[self.mod, None])
+        u = (p[:, self.mod] - self.rest[self.mod]) / self.p_scale
+        feats = [(off / self.d_scale).flatten(2), z[:, self.nbr].flatten(2), u, z[:, self.mod],
+                 self.emb.expand(x.shape[0], -1, -1)]
+        return self.net(torch.cat(feats, -1)) + 0.5 * z[:, self.mod].pow(2).sum(-1, keepdim=True)
+
+    def _force(self, x: Tensor) -> Tensor:
+        keep = torch.is_grad_enabled()
+        with torch.enable_grad():
+            y = x if x.requires_grad else x.detach().requires_grad_(True)
+            g = torch.autograd.grad(self._raw(y).sum(), y, create_graph=keep)[0][:, self.mod]
+        return -torch.cat([self.d_scale * self.a_scale * g[..., :3], self.latent_scale * g[..., 3:]], -1)
+
+    def accel(self, x: Tensor) -> Tensor:
+        return self._force(x) - self._force(self.rest_state[None])
+
+    def forcing(self, force: Tensor) -> Tensor:
+        a = super().forcing(force)
+        return torch.cat([a, a.new_zeros(*a.shape[:-1], self.latent)], -1)
+
+    def from_rest(self, p0: Tensor, n: int, force: Tensor | None = None) -> Tensor:
+        return super().from_rest(self.state(p0), n, force)[..., :3]
+
+    def rollout_frames(self, prev: Tensor, cur: Tensor, n: int, force: Tensor | None = None) -> Tensor:
+        return self.rollout(prev, cur, n, force)[..., :3]
+
+    def start(self, frames: Tensor, force: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        x = self.state(frames[:, 0])
+        prev = x.clone()
+        prev[:, self.mod] = x[:, self.mod] - 0.5 * self.accel(x)
+        for t in range(frames.shape[1] - 1):
+            a = self.accel(x) + (0 if force is None else self.forcing(force[:, t]))
+            nxt = self.state(frames[:, t + 1])
+            nxt[:, self.mod, 3:] = 2 * x[:, self.mod, 3:] - prev[:, self.mod, 3:] + a[..., 3:]
+            prev, x = x, nxt
+        return prev, x
+
+
+class LinearStep(PositionOnlyStep):
+    """The best linear step of the same form, ``a = K (p - rest) + G F`` with full matrices (no mirrors imposed),
+    fitted by least squares to the second differences of the frames ``t`` of ``ranges`` ((variant, first, last)
+    as :func:`split_ranges` gives them) of ``positions`` (V, T, n, 3) under ``force`` (V, T - 1, 3) or None.
+    ``residual``: the fit's RMS residual over the RMS second difference (0: a linear step of the frame explains
+    them all)."""
+
+    def __init__(self, rest: Tensor, positions: Tensor, force: Tensor | None, ranges, force_slot: int | None):
+        super().__init__(rest, mirrors={}, force_slot=force_slot)
+        P = positions.double()
+        mod = self.mod.tolist()
+        rows, targets = [], []
+        for v, first, last in ranges:
+            u = (P[v, first + 1:last] - rest.double())[:, mod].flatten(1)
+            rows.append(u if force is None else torch.cat([u, force[v, first + 1:last].double()], 1))
+            targets.append((P[v, first + 2:last + 1] - 2 * P[v, first + 1:last] + P[v, first:last - 1])[:, mod]
+                           .flatten(1))
+        X, Y = torch.cat(rows), torch.cat(targets)
+        scale = X.norm(dim=0).clamp_min(1e-30)  # columns of unit norm; directions no frame spans are left at zero
+        W = torch.linalg.lstsq(X / scale, Y, rcond=1e-9, driver="gelsd").solution / scale[:, None]
+        self.residual = float((X @ W - Y).pow(2).mean().sqrt() / Y.pow(2).mean().sqrt())  # of the RMS target
+        W = W.float()
+        self.register_buffer("K", W[:3 * len(mod)])
+        self.register_buffer("Gf", W[3 * len(mod):])
+
+    def accel(self, p: Tensor) -> Tensor:
+        return ((p - self.rest)[:, self.mod].flatten(1) @ self.K).view(p.shape[0], -1, 3)
+
+    def forcing(self, force: Tensor) -> Tensor:
+        return (force @ self.Gf).view(force.shape[0], -1, 3)
 
 
 def centred(wrench: Tensor) -> Tensor:
@@ -201,8 +310,17 @@ SPECS = {
 }
 
 
+def diverged(pred: Tensor) -> dict | None:
+    """``{"diverged_at_step": k}`` for the first of the frames (B, T, n, 3) that is not finite in any rollout."""
+    bad = ~pred.isfinite().flatten(2).all(-1).all(0)
+    return {"diverged_at_step": int(bad.nonzero()[0]) + 1} if bad.any() else None
+
+
 def node_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> dict:
-    """The node of interest's error (mm) per axis of ``axes``: [the mean over the batch of the max, the mean]."""
+    """The node of interest's error (mm) per axis of ``axes``: [the mean over the batch of the max, the mean]
+    (:func:`diverged`'s report instead where the rollout left the finite numbers)."""
+    if (bad := diverged(pred if pred.dim() == 4 else pred[None])) is not None:
+        return bad
     e = (pred[..., slot, :] - true[..., slot, :]).abs() * 1e3  # (B, T, 3)
     return {ax: [round(e[..., i].amax(-1).mean().item(), 2), round(e[..., i].mean().item(), 2)] for ax, i in
             ((ax, "xyz".index(ax)) for ax in axes)}
@@ -210,7 +328,9 @@ def node_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> dict:
 
 def fresh_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> list:
     """[the mean over the variants of the largest error on any axis (``fresh_score``'s figure, mm), the mean error
-    over ``axes``]."""
+    over ``axes``] (:func:`diverged`'s report instead where a rollout left the finite numbers)."""
+    if (bad := diverged(pred)) is not None:
+        return bad
     e = (pred[..., slot, :] - true[..., slot, :]).abs() * 1e3
     mean = e[..., ["xyz".index(ax) for ax in axes]].mean()
     return [round(e.amax(1).amax(-1).mean().item(), 2), round(mean.item(), 2)]
@@ -244,8 +364,9 @@ class Study:
         axes, slot = self.spec["axes"], self.slot
         P, F = self.positions[0].float(), self.force
         cut = int(round(0.6 * (P.shape[0] - 1)))
-        out = {"seen": node_errors(model.rollout(P[None, cut - 1], P[None, cut], P.shape[0] - 1 - cut,
-                                                 None if F is None else F[:1, cut:])[0], P[cut + 1:], slot, axes)}
+        prev, cur = model.start(P[None, :cut + 1], None if F is None else F[:1, :cut])
+        out = {"seen": node_errors(model.rollout_frames(prev, cur, P.shape[0] - 1 - cut,
+                                                        None if F is None else F[:1, cut:])[0], P[cut + 1:], slot, axes)}
         for name in self.task.heldout:
             p, w, _ = reference_rollout(self.task, name, data_dir=self.data_dir)
             f = self._force({"wrench": w[None]})
@@ -277,7 +398,11 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--noise", type=float, default=0.0, help="metres: one random shift of each start's two frames")
     ap.add_argument("--conservative", action="store_true",
                     help="the second difference is minus the gradient of a learned energy (no work around a cycle)")
+    ap.add_argument("--latent", type=int, default=0, help="unobserved coordinates per modelled node (LatentStep: "
+                    "conservative, no mirrors, trained on whole runs from rest)")
     ap.add_argument("--lowpass", type=float, default=0.0, help="Hz: train on trajectories low-passed in time")
+    ap.add_argument("--linear", action="store_true", help="only fit and evaluate the least-squares linear step "
+                    "(LinearStep) on the same frames, low-passed as asked")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data-dir", default="data")
@@ -287,7 +412,12 @@ def parse(argv=None) -> argparse.Namespace:
     for name in ("minutes", "batch", "lr", "hidden", "r", "threads", "variants"):
         if getattr(a, name) is not None and getattr(a, name) <= 0:
             ap.error(f"--{name} must be positive, got {getattr(a, name)}")
-    a.mirrors = SPECS[a.task]["mirrors"] if a.mirrors is None else a.mirrors
+    if a.latent < 0:
+        ap.error(f"--latent must be >= 0, got {a.latent}")
+    if a.latent and (a.mirrors or a.lowpass or a.noise or a.linear):
+        ap.error("--latent takes no --mirrors (give --mirrors ''), --lowpass, --noise or --linear")
+    a.conservative = a.conservative or bool(a.latent)
+    a.mirrors = "" if a.latent else SPECS[a.task]["mirrors"] if a.mirrors is None else a.mirrors
     mirrors = get_task(a.task).mirrors
     if len(set(a.mirrors)) != len(a.mirrors) or not set(a.mirrors) <= set(mirrors):
         ap.error(f"--mirrors {a.mirrors!r}: task {a.task!r} has the reflections {sorted(mirrors)}, each at most once")
@@ -309,14 +439,25 @@ def main(argv=None) -> dict:
     moving = (P.std(dim=(0, 1, 2)) > 0).float()  # the axes the data move along (the ellipse stays in its plane)
     train = split_ranges(V, T)["train"]  # the printed scene's first 60 %, variants 1 .. V-2 whole; the last left out
     args = {k: v for k, v in vars(a).items() if k != "stages"}
+    cut = int(round(0.6 * (T - 1)))  # the floor of a model of the low-passed motion: the printed scene's last 40 %
+    floor = {"lowpass_floor": node_errors(P[0, cut + 1:], raw[0, cut + 1:], study.slot, study.spec["axes"])}
+    if a.linear:
+        t0 = time.time()
+        linear = LinearStep(study.rest, P, F, train, study.force_slot)
+        result = {"linear": {"wall_s": round(time.time() - t0, 1), "fit_residual": round(linear.residual, 3),
+                             **study.evaluate(linear)}, **floor, "args": args}
+        print(json.dumps(result))
+        return result
     task_mirrors = study.task.mirrors
-    model = PositionOnlyStep(study.rest, r=a.r, hidden=a.hidden, conservative=a.conservative,
-                             mirrors={ax: task_mirrors[ax] for ax in a.mirrors}, force_slot=study.force_slot,
-                             g_scale=study.g_scale,
-                             **study.spec["scales"])
+    kw = dict(r=a.r, hidden=a.hidden, force_slot=study.force_slot, g_scale=study.g_scale, **study.spec["scales"])
+    if a.latent:
+        model = LatentStep(study.rest, a.latent, **kw)
+    else:
+        model = PositionOnlyStep(study.rest, conservative=a.conservative,
+                                 mirrors={ax: task_mirrors[ax] for ax in a.mirrors}, **kw)
     if a.init:
         init = torch.load(a.init, weights_only=True)
-        arch = ("task", "r", "hidden", "conservative", "mirrors")
+        arch = ("task", "r", "hidden", "conservative", "mirrors", "latent")
         if any(init["args"].get(k) != getattr(a, k) for k in arch):
             raise SystemExit(f"--init {a.init}: its {arch} are {[init['args'].get(k) for k in arch]}")
         model.load_state_dict(init["state"])
@@ -324,6 +465,8 @@ def main(argv=None) -> dict:
     t0, stages = time.time(), []
     for H, iters in a.stages:
         ranges = [(v, first + 1, last - H) for v, first, last in train if last - H > first + 1]  # one before, H after
+        if a.latent:  # whole runs from rest: the latent coordinates start at rest too
+            ranges = [(v, 0, 1) for v, first, last in train if first == 0 and last >= H]
         if not ranges:
             raise SystemExit(f"--horizons: no training window holds {H} steps after its start")
         weight = torch.tensor([float(b - s) for _, s, b in ranges])
@@ -334,15 +477,19 @@ def main(argv=None) -> dict:
                 g["lr"] = a.lr * 0.5 * (1 + math.cos(math.pi * k / iters)) + 1e-5
             pick = torch.multinomial(weight, a.batch, replacement=True).tolist()
             vs = torch.tensor([ranges[i][0] for i in pick])
-            ts = torch.stack([torch.randint(ranges[i][1], ranges[i][2], ()) for i in pick])
-            prev, cur = P[vs, ts - 1], P[vs, ts]
-            if a.noise:
-                z = torch.randn(a.batch, n, 3) * a.noise * moving
-                z[:, [0, -1]] = 0.0
-                prev, cur = prev + z, cur + z
-            true = torch.stack([P[vs, ts + j] for j in range(1, H + 1)], 1)
-            force = None if F is None else torch.stack([F[vs, ts + j] for j in range(H)], 1)
-            loss = ((model.rollout(prev, cur, H, force) - true)[:, :, 1:-1] * 1e3).pow(2).mean()
+            if a.latent:  # whole runs from rest
+                pred = model.from_rest(P[vs, 0], H, None if F is None else F[vs, :H])
+                loss = ((pred - P[vs, 1:H + 1])[:, :, 1:-1] * 1e3).pow(2).mean()
+            else:
+                ts = torch.stack([torch.randint(ranges[i][1], ranges[i][2], ()) for i in pick])
+                prev, cur = P[vs, ts - 1], P[vs, ts]
+                if a.noise:
+                    z = torch.randn(a.batch, n, 3) * a.noise * moving
+                    z[:, [0, -1]] = 0.0
+                    prev, cur = prev + z, cur + z
+                true = torch.stack([P[vs, ts + j] for j in range(1, H + 1)], 1)
+                force = None if F is None else torch.stack([F[vs, ts + j] for j in range(H)], 1)
+                loss = ((model.rollout(prev, cur, H, force) - true)[:, :, 1:-1] * 1e3).pow(2).mean()
             opt.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -354,7 +501,7 @@ def main(argv=None) -> dict:
         ev = study.evaluate(model)
         stages.append({"horizon": H, "wall_s": round(time.time() - t0, 1), **ev})
         print(json.dumps(stages[-1]), file=sys.stderr, flush=True)
-    result = {"stages": stages, "args": args}
+    result = {"stages": stages, **floor, "args": args}
     print(json.dumps(result))
     return result
 

@@ -930,6 +930,70 @@ def test_position_only_step_forces_at_frames():
         mod.PositionOnlyStep(rest, mirrors={"x": "reversed"}, force_slot=3)
 
 
+def test_position_only_latent_step_is_reversible_volume_preserving_and_observed():
+    """The study's step with latent coordinates (``--latent``) keeps what the position-only step has for any weights
+    (reversible with the force played backwards, Jacobian determinant 1 over positions and latent coordinates, at
+    rest at rest), and :meth:`start` driven by the positions of the step's own run from rest recovers that run's
+    latent state, so a rollout from it continues the run."""
+    mod = load_script("study_position_only_step")
+    torch.manual_seed(3)
+    n, M = 9, 2
+    rest = _arch_rest(n)
+    model = mod.LatentStep(rest, M, r=2, hidden=16, a_scale=1e-2, force_slot=4).double()
+    inner = torch.zeros(1, n, 1, dtype=torch.float64)
+    inner[:, 1:-1] = 1.0
+    x0 = model.state(rest[None]) + 0.02 * torch.randn(1, n, 3 + M, dtype=torch.float64) * inner
+    x1 = x0 + 0.002 * torch.randn(1, n, 3 + M, dtype=torch.float64) * inner
+    force = 0.05 * torch.randn(1, 40, 3, dtype=torch.float64)
+    with torch.no_grad():
+        fwd = model.rollout(x0, x1, 40, force)
+        back = model.rollout(fwd[:, -1], fwd[:, -2], 40, force.flip(1))
+        assert (fwd[:, -1, :, 3:] - x1[..., 3:]).abs().max() > 1e-3  # the latent coordinates moved
+        assert torch.allclose(back[:, -2], x1, atol=1e-11) and torch.allclose(back[:, -1], x0, atol=1e-11)
+        assert model.accel(model.state(rest[None])).abs().max() < 1e-15
+        run = model.from_rest(rest[None], 30, force[:, :30])  # positions only
+        full = model.rollout(*model.start(rest[None, None].repeat(1, 2, 1, 1)), 30, force[:, :30])
+        assert torch.allclose(full[..., :3], run, atol=1e-12)
+        frames = torch.cat([rest[None, None], run], 1)
+        prev, cur = model.start(frames[:, :21], force[:, :20])
+        assert torch.allclose(cur, full[:, 19], atol=1e-11) and torch.allclose(prev, full[:, 18], atol=1e-11)
+        assert torch.allclose(model.rollout_frames(prev, cur, 10, force[:, 20:30]), run[:, 20:], atol=1e-11)
+    d = 2 * 7 * (3 + M)
+
+    def step(x):
+        prev, cur = model.state(rest[None]), model.state(rest[None])
+        prev[:, 1:-1], cur[:, 1:-1] = x[:d // 2].reshape(1, 7, -1), x[d // 2:].reshape(1, 7, -1)
+        nxt = model.rollout(prev, cur, 1, force[:, :1])[:, 0]
+        return torch.cat([cur[:, 1:-1].reshape(-1), nxt[:, 1:-1].reshape(-1)])
+
+    x = torch.cat([x0[0, 1:-1].reshape(-1), x1[0, 1:-1].reshape(-1)])
+    assert abs(float(torch.linalg.det(torch.autograd.functional.jacobian(step, x))) - 1.0) < 1e-12
+
+
+def test_position_only_linear_step_recovers_a_linear_system():
+    """The study's least-squares linear step (``--linear``) recovers the stiffness and force maps of trajectories made
+    by a known linear step, and the study reports a rollout that leaves the finite numbers by its step."""
+    mod = load_script("study_position_only_step")
+    torch.manual_seed(2)
+    n, K = 9, 7
+    rest = _arch_rest(n).float()
+    B = torch.randn(3 * K, 3 * K, dtype=torch.float64)
+    stiff, G = -1e-3 * (B @ B.T / (3 * K) + torch.eye(3 * K, dtype=torch.float64)), 1e-3 * torch.randn(3, 3 * K)
+    force = 0.1 * torch.randn(3, 80, 3, dtype=torch.float64)
+    P = rest.double()[None, None].repeat(3, 81, 1, 1)
+    P[:, 1, 1:-1] += 0.01 * torch.randn(3, K, 3, dtype=torch.float64)
+    P[:, 0] = P[:, 1]
+    for t in range(1, 80):
+        u = (P[:, t] - rest.double())[:, 1:-1].flatten(1)
+        P[:, t + 1, 1:-1] = 2 * P[:, t, 1:-1] - P[:, t - 1, 1:-1] + (u @ stiff + force[:, t] @ G.double()).view(3, K, 3)
+    lin = mod.LinearStep(rest, P, force, [(v, 0, 80) for v in range(3)], force_slot=4)
+    assert torch.allclose(lin.K.double(), stiff, atol=1e-6) and torch.allclose(lin.Gf.double(), G.double(), atol=1e-6)
+    blown = torch.ones(2, 5, n, 3)
+    blown[1, 3:] = float("inf")
+    assert mod.node_errors(blown, blown, 4, "y") == {"diverged_at_step": 4}
+    assert mod.fresh_errors(blown, blown, 4, "y") == {"diverged_at_step": 4}
+
+
 @pytest.mark.parametrize("conservative", [False, True])
 def test_position_only_step_force_is_a_gradient_only_when_conservative(conservative):
     """With ``conservative`` the study's second difference is minus a gradient: its Jacobian in the modelled
