@@ -364,9 +364,10 @@ class Study:
         axes, slot = self.spec["axes"], self.slot
         P, F = self.positions[0].float(), self.force
         cut = int(round(0.6 * (P.shape[0] - 1)))
-        prev, cur = model.start(P[None, :cut + 1], None if F is None else F[:1, :cut])
-        out = {"seen": node_errors(model.rollout_frames(prev, cur, P.shape[0] - 1 - cut,
-                                                        None if F is None else F[:1, cut:])[0], P[cut + 1:], slot, axes)}
+        before, after = (None, None) if F is None else (F[:1, :cut], F[:1, cut:])
+        prev, cur = model.start(P[None, :cut + 1], before)
+        pred = model.rollout_frames(prev, cur, P.shape[0] - 1 - cut, after)[0]
+        out = {"seen": node_errors(pred, P[cut + 1:], slot, axes)}
         for name in self.task.heldout:
             p, w, _ = reference_rollout(self.task, name, data_dir=self.data_dir)
             f = self._force({"wrench": w[None]})
