@@ -459,8 +459,9 @@ def main(argv=None) -> dict:
     if a.init:
         init = torch.load(a.init, weights_only=True)
         arch = ("task", "r", "hidden", "conservative", "mirrors", "latent")
-        if any(init["args"].get(k) != getattr(a, k) for k in arch):
-            raise SystemExit(f"--init {a.init}: its {arch} are {[init['args'].get(k) for k in arch]}")
+        have = [init["args"].get(k, 0 if k == "latent" else None) for k in arch]  # runs before --latent had none
+        if have != [getattr(a, k) for k in arch]:
+            raise SystemExit(f"--init {a.init}: its {arch} are {have}")
         model.load_state_dict(init["state"])
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     t0, stages = time.time(), []
