@@ -25,7 +25,8 @@ node 51, y and z) free-running from the printed scene's 60 % cut, the held-out s
 variants of seeds 1-3 from rest (their score as ``rank_checkpoints.py``'s: the mean over the variants of the largest
 axis's max error; and the mean error). The last line is JSON with each stage's figures and the low-pass floor (the
 low-passed printed scene's error against the LGVI's over its last 40 %). ``--linear`` fits and evaluates the best
-linear step of the same form instead (:class:`LinearStep`), with its fit's residual.
+linear step of the same form instead (:class:`LinearStep`), with its fit's residual; ``--latent M`` gives each node M
+unobserved coordinates in the same energy (:class:`LatentStep`).
 
 The best Simulation I model of the study (the docs section has every run): 811 s to horizon 256, then a fine-tuning
 at 1024 steps from that stage's checkpoint
@@ -70,6 +71,15 @@ def mirror_group(mirrors: dict, n: int) -> list[tuple[tuple[float, float, float]
     return group
 
 
+def mlp(width: int, hidden: int, depth: int, out: int) -> nn.Sequential:
+    """``depth`` tanh layers of ``hidden`` units from ``width`` inputs, then a linear map to ``out``."""
+    layers = []
+    for _ in range(depth):
+        layers += [nn.Linear(width, hidden), nn.Tanh()]
+        width = hidden
+    return nn.Sequential(*layers, nn.Linear(width, out))
+
+
 class PositionOnlyStep(nn.Module):
     """The step of the module docstring for a chain of ``n`` tracked nodes whose first and last are anchors.
 
@@ -106,11 +116,7 @@ class PositionOnlyStep(nn.Module):
             self.G = nn.Parameter(torch.zeros(len(mod), 3, 3))
             with torch.no_grad():
                 self.G[slot[force_slot]] = torch.eye(3)
-        layers, w = [], 2 * r * 3 + 3 + embedding
-        for _ in range(depth):
-            layers += [nn.Linear(w, hidden), nn.Tanh()]
-            w = hidden
-        self.net = nn.Sequential(*layers, nn.Linear(w, 1 if conservative else 3))
+        self.net = mlp(2 * r * 3 + 3 + embedding, hidden, depth, 1 if conservative else 3)
 
     def reflect(self, p: Tensor, g: int) -> Tensor:
         """Frames (B, n, 3) under the group's element ``g``."""
@@ -199,11 +205,7 @@ class LatentStep(PositionOnlyStep):
         self.latent, self.latent_scale = latent, latent_scale
         r, hidden = self.nbr.shape[1] // 2, self.net[0].out_features
         depth, embedding = sum(isinstance(m, nn.Linear) for m in self.net) - 1, self.emb.shape[1]
-        layers, w = [], 2 * r * (3 + latent) + 3 + latent + embedding
-        for _ in range(depth):
-            layers += [nn.Linear(w, hidden), nn.Tanh()]
-            w = hidden
-        self.net = nn.Sequential(*layers, nn.Linear(w, 1))
+        self.net = mlp(2 * r * (3 + latent) + 3 + latent + embedding, hidden, depth, 1)
         self.register_buffer("rest_state", torch.cat([rest, rest.new_zeros(rest.shape[0], latent)], -1))
 
     def state(self, p: Tensor) -> Tensor:
