@@ -384,6 +384,47 @@ class Study:
         return out
 
 
+ARCH = ("task", "r", "hidden", "conservative", "mirrors", "latent")  # what a run's weights fit
+
+
+def build(study: Study, args: dict) -> PositionOnlyStep:
+    """The step a run's ``args`` (the parsed flags, as a run's file keeps them) describe, untrained."""
+    kw = dict(r=args["r"], hidden=args["hidden"], force_slot=study.force_slot, g_scale=study.g_scale,
+              **study.spec["scales"])
+    if args.get("latent"):
+        return LatentStep(study.rest, args["latent"], **kw)
+    return PositionOnlyStep(study.rest, conservative=args["conservative"],
+                            mirrors={ax: study.task.mirrors[ax] for ax in args["mirrors"]}, **kw)
+
+
+def load_run(study: Study, path: str) -> PositionOnlyStep:
+    """The trained step of a run's ``--out`` file, for ``study``'s task."""
+    run = torch.load(path, weights_only=True)
+    if run["args"].get("task", "ellipse") != study.task.name:
+        raise SystemExit(f"--ensemble {path}: a run of task {run['args'].get('task')!r}, not {study.task.name!r}")
+    model = build(study, run["args"])
+    model.load_state_dict(run["state"])
+    return model
+
+
+class EnsembleStep(PositionOnlyStep):
+    """The mean of several steps' second differences (and force maps). The mean of conservative steps is
+    conservative too: minus the gradient of their mean energy. Position-only members."""
+
+    def __init__(self, members: list[PositionOnlyStep]):
+        if any(isinstance(m, LatentStep) for m in members):
+            raise ValueError("EnsembleStep: latent steps have states of their own")
+        first = members[0]
+        super().__init__(first.rest, mirrors={}, force_slot=first.force_slot)
+        self.members = nn.ModuleList(members)
+
+    def accel(self, p: Tensor) -> Tensor:
+        return sum(m.accel(p) for m in self.members) / len(self.members)
+
+    def forcing(self, force: Tensor) -> Tensor:
+        return sum(m.forcing(force) for m in self.members) / len(self.members)
+
+
 def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--task", default="ellipse", choices=sorted(SPECS))
@@ -406,6 +447,8 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--lowpass", type=float, default=0.0, help="Hz: train on trajectories low-passed in time")
     ap.add_argument("--linear", action="store_true", help="only fit and evaluate the least-squares linear step "
                     "(LinearStep) on the same frames, low-passed as asked")
+    ap.add_argument("--ensemble", default="", help="only evaluate the mean step of these runs' --out files "
+                    "(comma-separated; EnsembleStep)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data-dir", default="data")
@@ -415,6 +458,8 @@ def parse(argv=None) -> argparse.Namespace:
     for name in ("minutes", "batch", "lr", "hidden", "r", "threads", "variants"):
         if getattr(a, name) is not None and getattr(a, name) <= 0:
             ap.error(f"--{name} must be positive, got {getattr(a, name)}")
+    if a.ensemble and (a.linear or a.init or a.latent):
+        ap.error("--ensemble evaluates trained runs: no --linear, --init or --latent with it")
     if a.latent < 0:
         ap.error(f"--latent must be >= 0, got {a.latent}")
     if a.latent and (a.mirrors or a.lowpass or a.noise or a.linear):
@@ -451,19 +496,17 @@ def main(argv=None) -> dict:
                              **study.evaluate(linear)}, **floor, "args": args}
         print(json.dumps(result))
         return result
-    task_mirrors = study.task.mirrors
-    kw = dict(r=a.r, hidden=a.hidden, force_slot=study.force_slot, g_scale=study.g_scale, **study.spec["scales"])
-    if a.latent:
-        model = LatentStep(study.rest, a.latent, **kw)
-    else:
-        model = PositionOnlyStep(study.rest, conservative=a.conservative,
-                                 mirrors={ax: task_mirrors[ax] for ax in a.mirrors}, **kw)
+    if a.ensemble:
+        members = [load_run(study, path) for path in a.ensemble.split(",")]
+        result = {"ensemble": study.evaluate(EnsembleStep(members)), **floor, "args": args}
+        print(json.dumps(result))
+        return result
+    model = build(study, vars(a))
     if a.init:
         init = torch.load(a.init, weights_only=True)
-        arch = ("task", "r", "hidden", "conservative", "mirrors", "latent")
-        have = [init["args"].get(k, 0 if k == "latent" else None) for k in arch]  # runs before --latent had none
-        if have != [getattr(a, k) for k in arch]:
-            raise SystemExit(f"--init {a.init}: its {arch} are {have}")
+        have = [init["args"].get(k, 0 if k == "latent" else None) for k in ARCH]  # runs before --latent had none
+        if have != [getattr(a, k) for k in ARCH]:
+            raise SystemExit(f"--init {a.init}: its {ARCH} are {have}")
         model.load_state_dict(init["state"])
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     t0, stages = time.time(), []

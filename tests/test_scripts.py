@@ -1014,3 +1014,11 @@ def test_position_only_step_force_is_a_gradient_only_when_conservative(conservat
     J = torch.autograd.functional.jacobian(accel, p[0, 1:-1].reshape(-1))
     asym = float((J - J.t()).abs().max() / J.abs().max())
     assert asym < 1e-10 if conservative else asym > 1e-3
+    other = mod.PositionOnlyStep(rest, r=2, hidden=16, a_scale=1e-2, conservative=conservative).double().eval()
+    mean = mod.EnsembleStep([model, other])  # the mean step: conservative where its members are
+    assert torch.allclose(mean.accel(p), 0.5 * (model.accel(p) + other.accel(p)), atol=1e-15)
+    if conservative:
+        Jm = torch.autograd.functional.jacobian(
+            lambda x: mean.accel(torch.cat([p[:, :1], x.reshape(1, n - 2, 3), p[:, -1:]], 1)).reshape(-1),
+            p[0, 1:-1].reshape(-1))
+        assert float((Jm - Jm.t()).abs().max() / Jm.abs().max()) < 1e-10
