@@ -932,8 +932,8 @@ def test_position_only_step_forces_at_frames():
 
 def test_position_only_latent_step_is_reversible_volume_preserving_and_observed():
     """The study's step with latent coordinates (``--latent``) keeps what the position-only step has for any weights
-    (reversible with the force played backwards, Jacobian determinant 1 over positions and latent coordinates, at
-    rest at rest), and :meth:`start` driven by the positions of the step's own run from rest recovers that run's
+    (reversible with the force played backwards, Jacobian determinant 1 over positions and latent coordinates, zero
+    second difference at rest), and :meth:`start` driven by the positions of the step's own run from rest recovers that run's
     latent state, so a rollout from it continues the run."""
     mod = load_script("study_position_only_step")
     torch.manual_seed(3)
