@@ -54,8 +54,9 @@ from cmlearn.data import cached_dataset  # noqa: E402
 from cmlearn.data.generate import reference_rollout  # noqa: E402
 from cmlearn.data.tasks import get_task  # noqa: E402
 from cmlearn.data.windows import split_ranges  # noqa: E402
+from cmlearn.eval.metrics import axis_errors  # noqa: E402
 from cmlearn.io import save_torch_atomic  # noqa: E402
-from cmlearn.surrogate.evaluate import interest_slots  # noqa: E402
+from cmlearn.surrogate.evaluate import fresh_score, interest_slots  # noqa: E402
 
 def mirror_group(mirrors: dict, n: int) -> list[tuple[tuple[float, float, float], list[int]]]:
     """The reflections ``mirrors`` (as :attr:`SurrogateTask.mirrors`: ``{"x": "reversed"}`` is x -> -x with the
@@ -318,24 +319,29 @@ def diverged(pred: Tensor) -> dict | None:
     return {"diverged_at_step": int(bad.nonzero()[0]) + 1} if bad.any() else None
 
 
+def _node_axis_errors(pred: Tensor, true: Tensor, slot: int) -> list[dict]:
+    """:func:`axis_errors` of the tracked node ``slot`` in each rollout of ``pred`` (B, T, n, 3)."""
+    return [axis_errors(pred[b, :, slot], true[b, :, slot], 1.0) for b in range(pred.shape[0])]
+
+
 def node_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> dict:
     """The node of interest's error (mm) per axis of ``axes``: [the mean over the batch of the max, the mean]
     (:func:`diverged`'s report instead where the rollout left the finite numbers)."""
-    if (bad := diverged(pred if pred.dim() == 4 else pred[None])) is not None:
+    pred, true = (pred, true) if pred.dim() == 4 else (pred[None], true[None])
+    if (bad := diverged(pred)) is not None:
         return bad
-    e = (pred[..., slot, :] - true[..., slot, :]).abs() * 1e3  # (B, T, 3)
-    return {ax: [round(e[..., i].amax(-1).mean().item(), 2), round(e[..., i].mean().item(), 2)] for ax, i in
-            ((ax, "xyz".index(ax)) for ax in axes)}
+    errs = _node_axis_errors(pred, true, slot)
+    return {ax: [round(sum(e[ax][k] for e in errs) / len(errs), 2) for k in ("max_mm", "mean_mm")] for ax in axes}
 
 
 def fresh_errors(pred: Tensor, true: Tensor, slot: int, axes: str) -> list:
-    """[the mean over the variants of the largest error on any axis (``fresh_score``'s figure, mm), the mean error
-    over ``axes``] (:func:`diverged`'s report instead where a rollout left the finite numbers)."""
+    """[:func:`fresh_score` (the mean over the variants of the largest error on any axis, mm), the mean error over
+    ``axes``] (:func:`diverged`'s report instead where a rollout left the finite numbers)."""
     if (bad := diverged(pred)) is not None:
         return bad
-    e = (pred[..., slot, :] - true[..., slot, :]).abs() * 1e3
-    mean = e[..., ["xyz".index(ax) for ax in axes]].mean()
-    return [round(e.amax(1).amax(-1).mean().item(), 2), round(mean.item(), 2)]
+    errs = _node_axis_errors(pred, true, slot)
+    mean = sum(e[ax]["mean_mm"] for e in errs for ax in axes) / (len(errs) * len(axes))
+    return [round(fresh_score(errs), 2), round(mean, 2)]
 
 
 class Study:
@@ -354,9 +360,9 @@ class Study:
         rod, n_mod = scene.rod, len(self.task.modeled)
         self.g_scale = self.task.delta ** 2 * n_mod / (rod.line_mass * rod.length)  # m/N: the rod's mass shared
         data = cached_dataset(self.task, variants or self.spec["variants"], 0, data_dir)
-        self.positions, self.force = data["positions"], self._force(data)
+        self.positions, self.force = data["positions"], self._forces(data)
 
-    def _force(self, data: dict) -> Tensor | None:
+    def _forces(self, data: dict) -> Tensor | None:
         return centred(data["wrench"][..., 0, :].float()) if self.force_slot is not None else None
 
     @torch.no_grad()
@@ -372,12 +378,12 @@ class Study:
         out = {"seen": node_errors(pred, P[cut + 1:], slot, axes)}
         for name in self.task.heldout:
             p, w, _ = reference_rollout(self.task, name, data_dir=self.data_dir)
-            f = self._force({"wrench": w[None]})
+            f = self._forces({"wrench": w[None]})
             out[name] = node_errors(model.from_rest(p[None, 0].float(), p.shape[0] - 1, f)[0], p[1:].float(),
                                     slot, axes)
         for n, seed in self.spec["fresh"]:
             d = cached_dataset(self.task, n, seed, self.data_dir)
-            q, f = d["positions"][1:].float(), self._force(d)
+            q, f = d["positions"][1:].float(), self._forces(d)
             out[f"fresh_seed{seed}"] = fresh_errors(model.from_rest(q[:, 0], q.shape[1] - 1,
                                                                     None if f is None else f[1:]),
                                                     q[:, 1:], slot, axes)
