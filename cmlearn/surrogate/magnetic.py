@@ -33,6 +33,7 @@ from torch import Tensor
 from cmlearn.data.generate import reference_rollout
 from cmlearn.data.magnetic import (block_nodes, by_frames, currents_series, equivalent_forces, field_samples,
                                    linearised_field, magnet_frames, rollout, simulate, tracked_points, wrench_inputs)
+from cmlearn.data.quasistatic import static_track
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors, rmse_t
 from cmlearn.io import save_torch_atomic
@@ -165,16 +166,6 @@ def closed_loop_wrench(task):
     return wrench_fn
 
 
-def _hook(field_model, I: Tensor):
-    """Field hook with fixed currents; non-finite trial positions (a diverging shooting step) get a NaN
-    field, so that the solver rejects the step instead of the coil model raising."""
-    def hook(_t, x):
-        ok = torch.isfinite(x).all(-1, keepdim=True)
-        B, dB = field_model.field_and_gradient(torch.where(ok, x, torch.zeros_like(x)), I)
-        return B.masked_fill(~ok, math.nan), dB.masked_fill(~ok[..., None], math.nan)
-    return hook
-
-
 def base_pose(scene) -> dict:
     """The clamp of a magnetic-rod scene as keywords of the Cosserat solve (``{}``: hanging from the origin,
     the Cosserat scene's own base)."""
@@ -188,18 +179,9 @@ def base_pose(scene) -> dict:
 def cosserat_orientations(currents, times, field_model, n_nodes: int = 13, **pose):
     """Magnet rotations (T, 2, 3, 3) of the static Cosserat rod at ``times`` (s) with ``currents(t)``, each
     solve warm-started from the previous one; also the solver wall time (s). ``pose``: the clamp
-    (:func:`base_pose`)."""
-    from physics.scenes_cosserat import paper2_magnetic_rod
-    sc = paper2_magnetic_rod(n_nodes)
-    solver = sc.solver()
-    nodes = list(sc.rod.grid.magnet_nodes)
-    out, sol = [], None
-    t0 = time.perf_counter()
-    for t in times:
-        I = torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
-        sol = sc.solve(solver, field=_hook(field_model, I), init=sol, load_steps=4 if sol is None else 1, **pose)
-        out.append(sol.R[..., nodes, :, :])
-    return torch.stack(out), time.perf_counter() - t0
+    (:func:`base_pose`). :func:`cmlearn.data.quasistatic.static_track`'s rotations."""
+    _, R, wall = static_track(currents, field_model, times, n_nodes, **pose)
+    return R, wall
 
 
 def _position_metrics(pred: Tensor, ref: Tensor, slots, length: float) -> dict:
@@ -399,7 +381,9 @@ def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict
 
 def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None, compile: bool = False) -> dict:
     """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there, plus the magnets'
-    orientation errors (deg) of the surrogate (closed loop, compiled where asked) and of the static Cosserat model."""
+    orientation errors (deg) of the surrogate (closed loop, compiled where asked), of the static Cosserat model and,
+    where ``checkpoints/<task>_quasistatic.pt`` is shipped, of the quasi-static hybrid
+    (:mod:`cmlearn.surrogate.quasistatic`) on the same static track."""
     from cmlearn.compare import find_checkpoint, node_errors, surrogate_rollout
 
     from .engine import Surrogate
@@ -415,11 +399,26 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
     R_ref = magnet_frames(task, rod, p_ref[1:].double())[1]
     orient = {"surrogate": orientation_stats(orientation_errors(magnet_frames(task, rod, p_sur[1:].double())[1], R_ref))}
-    R_cos, wall_cos = cosserat_orientations(scene.loads.field.currents, t[1:].tolist(), scene.loads.field.emns,
-                                            **base_pose(scene))
-    orient["cosserat"] = orientation_stats(orientation_errors(R_cos, R_ref))
+    P_cos, R_cos, wall_cos = static_track(scene.loads.field.currents, scene.loads.field.emns, t.tolist(),
+                                          **base_pose(scene))
+    orient["cosserat"] = orientation_stats(orientation_errors(R_cos[1:], R_ref))
+    hybrid = {}
+    try:
+        path = find_checkpoint(f"{task.name}_quasistatic")
+    except FileNotFoundError:  # no quasi-static hybrid shipped for this task
+        path = None
+    if path is not None:  # the hybrid on the same static track: its correction's time on top of the solves'
+        from cmlearn.data.quasistatic import compose, static_state
+
+        from .quasistatic import QuasiStaticSurrogate, rollout_from
+        hyb = QuasiStaticSurrogate.load(path, task=task.name)
+        t0 = time.perf_counter()
+        s = static_state(P_cos, R_cos, hyb.rest)
+        R_hyb = compose(rollout_from(hyb.model, s, torch.zeros_like(s), 0), P_cos[1:], R_cos[1:])[1]
+        hybrid = {"hybrid_wall_s": wall_cos + time.perf_counter() - t0}
+        orient["hybrid"] = orientation_stats(orientation_errors(R_hyb, R_ref))
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
             "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur, "cosserat_wall_s": wall_cos,
-            "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "orientation_deg": orient,
+            **hybrid, "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "orientation_deg": orient,
             "checkpoint_metrics": engine.meta.get("metrics", {}),
             "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}

@@ -1,0 +1,111 @@
+"""The static Cosserat rod along a current profile, and the magnets' deviation from it: the data of the
+quasi-static hybrid surrogate of the magnetic rod (:mod:`cmlearn.models.quasistatic`).
+
+Static track. At every frame time the static Cosserat rod (:func:`physics.scenes_cosserat.paper2_magnetic_rod`,
+13 nodes) is solved in the scene's eMNS with that time's currents, warm-started from the previous frame's
+solution (the thesis's quasi-static use of the model); a batch of current profiles (``currents(t) -> (V, C)``)
+is solved as one batch. Where the rod snaps over (a fold of its equilibrium) the track jumps within one frame;
+the dynamic rod follows in about 0.2 s, with overshoot.
+
+Coordinates (12 per frame, two magnets in :data:`~cmlearn.surrogate.magnetic.MAGNETS` order):
+
+* static state ``s``: the two magnet centres (mm) and the rotation vectors (deg) of the magnets' rotations
+  relative to their rotations at rest (the static rod at zero current);
+* deviation ``d``: the LGVI's block centres minus the static ones (mm) and the rotation vectors (deg) of
+  ``R_lgvi R_static^T`` (world frame), so that :func:`compose` rebuilds the LGVI's magnets from ``s`` and ``d``.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from cmlearn.io import save_torch_atomic
+from physics.lie import so3_exp, so3_log
+
+__all__ = ["N_COORDS", "field_hook", "TabulatedField", "static_track", "static_state", "deviation", "compose",
+           "cached_static_track"]
+
+N_COORDS = 12
+_DEG = 180.0 / math.pi
+
+
+def field_hook(emns, I: Tensor):
+    """Field hook with fixed currents ``I`` (C,) or (V, C); non-finite trial positions (a diverging shooting
+    step) get a NaN field, so that the solver rejects the step instead of the coil model raising."""
+    def hook(_t, x):
+        ok = torch.isfinite(x).all(-1, keepdim=True)
+        B, dB = emns.field_and_gradient(torch.where(ok, x, torch.zeros_like(x)), I)
+        return B.masked_fill(~ok, math.nan), dB.masked_fill(~ok[..., None], math.nan)
+    return hook
+
+
+class TabulatedField:
+    """Field hook of an eMNS tabulated over its workspace (:class:`~physics.magnetics.field_table.CoilFieldTable`)
+    with fixed ``currents`` (C,): a hook whose state is tensors and whose field has no data-dependent branch, so
+    that the compiled solver (``CosseratSolver(compile=True)``) runs it on its fast path."""
+
+    def __init__(self, table, currents: Tensor):
+        self.table, self.currents = table, currents
+
+    def __call__(self, _t, x):
+        return self.table.field_and_gradient(x, self.currents, check=False)
+
+
+def static_track(currents, emns, times, n_nodes: int = 13, **pose) -> tuple[Tensor, Tensor, float]:
+    """Magnet centres (..., T, 2, 3) and rotations (..., T, 2, 3, 3) of the static Cosserat rod at ``times``
+    (s) with ``currents(t) -> (C,)`` or ``(V, C)`` A (then ``...`` = V), each solve warm-started from the one
+    before; also the solver wall time (s). ``pose``: the clamp (:func:`cmlearn.surrogate.magnetic.base_pose`)."""
+    from physics.scenes_cosserat import paper2_magnetic_rod
+    if len(times) == 0:
+        raise ValueError("times must hold at least one time")
+    sc = paper2_magnetic_rod(n_nodes)
+    solver = sc.solver()
+    nodes = list(sc.rod.grid.magnet_nodes)
+    P, R, sol = [], [], None
+    t0 = time.perf_counter()
+    for t in times:
+        I = torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
+        sol = sc.solve(solver, field=field_hook(emns, I), init=sol, load_steps=4 if sol is None else 1, **pose)
+        P.append(sol.p[..., nodes, :])
+        R.append(sol.R[..., nodes, :, :])
+    return torch.stack(P, -3), torch.stack(R, -4), time.perf_counter() - t0
+
+
+def static_state(P: Tensor, R: Tensor, R_rest: Tensor) -> Tensor:
+    """``s`` (..., 12) of static magnet centres ``P`` (..., 2, 3) m and rotations ``R`` (..., 2, 3, 3) against
+    the rotations at rest ``R_rest`` (2, 3, 3)."""
+    rot = so3_log(R @ R_rest.to(R).transpose(-1, -2)) * _DEG
+    return torch.cat([(P * 1e3).flatten(-2), rot.flatten(-2)], -1)
+
+
+def deviation(c: Tensor, R: Tensor, P: Tensor, Rs: Tensor) -> Tensor:
+    """``d`` (..., 12) of magnets at ``c`` (..., 2, 3), ``R`` (..., 2, 3, 3) from the static ``P``, ``Rs``."""
+    rot = so3_log(R @ Rs.transpose(-1, -2)) * _DEG
+    return torch.cat([((c - P) * 1e3).flatten(-2), rot.flatten(-2)], -1)
+
+
+def compose(d: Tensor, P: Tensor, Rs: Tensor) -> tuple[Tensor, Tensor]:
+    """Magnet centres (..., 2, 3) and rotations (..., 2, 3, 3) at deviation ``d`` (..., 12) from the static
+    ``P``, ``Rs`` (the inverse of :func:`deviation`)."""
+    d = d.to(P.dtype)
+    dc = d[..., :6].unflatten(-1, (2, 3)) * 1e-3
+    dth = d[..., 6:].unflatten(-1, (2, 3)) / _DEG
+    return P + dc, so3_exp(dth) @ Rs
+
+
+def cached_static_track(path: str | Path | None, currents, emns, times, **pose) -> tuple[Tensor, Tensor, float]:
+    """:func:`static_track`, read from ``path`` where it holds the same ``times`` (and written there, atomically,
+    where it does not); ``None``: no cache. The file does not know the currents: name it after them."""
+    times = [float(t) for t in times]
+    if path is not None and Path(path).exists():
+        blob = torch.load(path, weights_only=True)
+        if blob.get("times") == times:
+            return blob["P"], blob["R"], float(blob["wall_s"])
+    P, R, wall = static_track(currents, emns, times, **pose)
+    if path is not None:
+        save_torch_atomic(path, {"P": P, "R": R, "wall_s": wall, "times": times})
+    return P, R, wall
