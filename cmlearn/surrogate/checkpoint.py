@@ -77,11 +77,13 @@ def provenance(path: str | Path, meta: dict) -> dict:
 
 
 def surrogate_checkpoints(folder: str | Path) -> list[Path]:
-    """The surrogate checkpoints in ``folder`` (those whose JSON metadata names a task; the folder also
-    holds the agent's)."""
+    """The node-surrogate checkpoints in ``folder`` (those whose JSON metadata names a task and no other format;
+    the folder also holds the agent's and the quasi-static hybrid's)."""
     out = []
     for p in sorted(Path(folder).glob("*.pt")):
         meta = p.with_suffix(".json")
-        if meta.is_file() and "task" in json.loads(meta.read_text()):
-            out.append(p)
+        if meta.is_file():
+            m = json.loads(meta.read_text())
+            if "task" in m and m.get("format", FORMAT) == FORMAT:
+                out.append(p)
     return out

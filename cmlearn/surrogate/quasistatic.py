@@ -1,0 +1,257 @@
+"""The quasi-static hybrid surrogate of the magnetic rod: the static Cosserat rod solved at each 20 ms step
+for the step's currents, plus a learned correction for the rod's dynamics
+(:class:`~cmlearn.models.QuasiStaticCorrection`). It needs nothing from the physics but the currents: the
+static solve is warm-started from the step before, and the correction runs free on its own deviations.
+
+Checkpoints are their own format (``cmlearn-quasistatic/1``: the correction's weights and configuration and
+the metadata, with a JSON copy), written atomically and loaded without Lightning by
+:meth:`QuasiStaticSurrogate.load`. Orientation errors are those of :mod:`cmlearn.surrogate.magnetic` (Table
+II.1): the printed profile's last 40 % from its 60 % cut (the true deviations before the cut), the held-out
+profiles from rest.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from cmlearn.data.generate import dataset_path, reference_rollout
+from cmlearn.data.magnetic import magnet_frames
+from cmlearn.data.quasistatic import (TabulatedField, cached_static_track, compose, deviation, field_hook,
+                                      static_state, static_track)
+from cmlearn.data.tasks import get_task
+from cmlearn.data.windows import split_ranges
+from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
+from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
+from physics.lie import so3_exp
+
+from .magnetic import base_pose, field_table, orientation_errors, orientation_stats
+
+__all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "profile_tracks", "rollout_from",
+           "deviation_errors", "profile_scores", "static_tracks", "fresh_scores", "short_check", "evaluate_quasistatic"]
+
+FORMAT = "cmlearn-quasistatic/1"
+
+
+def save_quasistatic(path: str | Path, model: QuasiStaticCorrection, meta: dict) -> Path:
+    """Write the checkpoint and its JSON metadata (``<name>.json``) atomically."""
+    path = Path(path)
+    meta = json.loads(json.dumps({**meta, "format": FORMAT}, default=str))
+    blob = {"format": FORMAT, "config": model.config.to_dict(), "meta": meta,
+            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+    save_torch_atomic(path, blob)
+    write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2) + "\n")
+    return path
+
+
+def rest_rotations(task) -> Tensor:
+    """The static rod's magnet rotations (2, 3, 3) at rest (zero current) in the task's scene."""
+    scene = task.base_scene()
+    return static_track(lambda t: torch.zeros(scene.loads.field.emns.n_coils, dtype=torch.float64),
+                        scene.loads.field.emns, [0.0], **base_pose(scene))[1][0]
+
+
+def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None):
+    """Static state ``s`` and deviation ``d`` (T, 12) of a scene's LGVI run ``positions`` (T, n_tracked, 3) at
+    frames k delta, and the static track (P, R); the track cached at ``cache`` if given."""
+    times = [k * task.delta for k in range(positions.shape[0])]
+    P, R, _ = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
+                                  **base_pose(scene))
+    c, Rl, _ = magnet_frames(task, scene.rod, positions.double())
+    return static_state(P, R, R_rest), deviation(c, Rl, P, R), (P, R)
+
+
+@torch.no_grad()
+def rollout_from(model: QuasiStaticCorrection, s: Tensor, d: Tensor, start: int) -> Tensor:
+    """Free-running deviations (..., T-1-start, 12) of frames start+1 .. T-1 from static states ``s`` and the
+    true deviations ``d`` (..., T, 12) up to frame ``start`` (float32 inside); a history reaching before frame 0
+    repeats frame 0 (from rest)."""
+    c = model.config
+    lead = max(c.eta, c.increments - 1)
+    batch = s.shape[:-2]
+    s, d = s.reshape(-1, *s.shape[-2:]).float(), d.reshape(-1, *d.shape[-2:]).float()
+    if start < lead:
+        pad = lead - start
+        s = torch.cat([s[:, :1].expand(-1, pad, -1), s], 1)
+        d = torch.cat([d[:, :1].expand(-1, pad, -1), d], 1)
+        start = lead
+    dev = model.rollout(d[:, start - c.eta:start + 1], s[:, start + 1 - c.increments:])
+    return dev.double().reshape(*batch, *dev.shape[1:])
+
+
+def deviation_errors(d_pred: Tensor, d_true: Tensor) -> Tensor:
+    """Orientation errors (..., 2, 3) deg (:func:`~cmlearn.surrogate.magnetic.orientation_errors`) of magnets at
+    deviations ``d_pred`` from the same static rod as the true ``d_true`` (..., 12)."""
+    rad = math.pi / 180.0
+    R = lambda x: so3_exp(x[..., 6:].unflatten(-1, (2, 3)).double() * rad)  # noqa: E731
+    return orientation_errors(R(d_pred), R(d_true))
+
+
+def profile_scores(model: QuasiStaticCorrection, s: Tensor, d: Tensor) -> Tensor:
+    """Per profile the sum of the six mean absolute orientation errors (deg) of the hybrid run from rest (zero
+    deviation) along static states ``s`` (V, T, 12), against the true deviations ``d``: a score on profiles no
+    model trained on."""
+    dev = rollout_from(model, s, torch.zeros_like(d), 0)
+    return deviation_errors(dev, d[:, 1:]).abs().mean(1).sum((1, 2))
+
+
+def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tensor) -> tuple[Tensor, Tensor]:
+    """Static states and deviations (V, T, 12) of ``dataset``'s profiles (regenerated from its seed, the static
+    track cached as ``<dataset>_static.pt`` in ``data_dir``)."""
+    meta = dataset["meta"]
+    scene = task.base_scene()
+    currents = task.variants(scene, meta["n_variants"], meta["seed"])["currents"]
+    pos = dataset["positions"].double()
+    times = [k * task.delta for k in range(pos.shape[1])]
+    cache = None
+    if data_dir is not None:
+        cache = dataset_path(data_dir, task.name, meta["n_variants"], meta["seed"]).with_suffix("")
+        cache = cache.with_name(cache.name + "_static.pt")
+    P, R, _ = cached_static_track(cache, currents, scene.loads.field.emns, times, **base_pose(scene))
+    c, Rl, _ = magnet_frames(task, scene.rod, pos)
+    return static_state(P, R, R_rest), deviation(c, Rl, P, R)
+
+
+def fresh_scores(model: QuasiStaticCorrection, task, n_variants: int, seed: int, data_dir: str | Path | None) -> dict:
+    """:func:`profile_scores` of the hybrid and of the static rod alone on the random profiles 1..n-1 of a dataset
+    of ``seed`` (profile 0 is the printed one): the median, mean and largest sum of six mean errors (deg)."""
+    from cmlearn.data.generate import cached_dataset
+    data = cached_dataset(task, n_variants, seed, data_dir)
+    s, d = static_tracks(task, data, data_dir, rest_rotations(task))
+    out = {"seed": seed, "profiles": n_variants - 1, "data_hash": data["meta"]["data_hash"]}
+    for name, sc in (("hybrid", profile_scores(model, s[1:], d[1:])),
+                     ("static", deviation_errors(torch.zeros_like(d[1:, 1:]), d[1:, 1:]).abs().mean(1).sum((1, 2)))):
+        out[name] = {"median": float(sc.median()), "mean": float(sc.mean()), "max": float(sc.max()),
+                     "per_profile": [round(float(x), 4) for x in sc]}
+    return out
+
+
+class QuasiStaticSurrogate:
+    """A loaded hybrid: ``run(scene, ...)`` gives its magnets along a scene's currents; ``latency()`` times one
+    real-time step (the warm static solve and the correction) at batch 1."""
+
+    def __init__(self, model: QuasiStaticCorrection, meta: dict):
+        self.model, self.meta = model.eval(), meta
+        self.task = get_task(meta["task"])
+        self._rest = None
+
+    @classmethod
+    def load(cls, path: str | Path, task: str | None = None) -> "QuasiStaticSurrogate":
+        path = Path(path)
+        if not path.is_file():
+            raise CheckpointError(f"{path}: no such checkpoint file")
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001 - any unpickling failure means an unusable file
+            raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
+        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+            raise CheckpointError(f"{path}: not a {FORMAT} checkpoint")
+        meta = blob.get("meta", {})
+        if task is not None and meta.get("task") != task:
+            raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
+        try:
+            model = QuasiStaticCorrection(QuasiStaticConfig(**blob["config"]))
+            model.load_state_dict(blob["state_dict"])
+        except (TypeError, ValueError, RuntimeError, KeyError) as e:
+            raise CheckpointError(f"{path}: weights do not match the stored configuration ({str(e)[:200]})") from None
+        return cls(model, meta)
+
+    @property
+    def rest(self) -> Tensor:
+        if self._rest is None:
+            self._rest = rest_rotations(self.task)
+        return self._rest
+
+    @torch.no_grad()
+    def run(self, scene, positions: Tensor | None = None, start: int = 0, cache=None):
+        """Magnet centres (H, 2, 3) and rotations (H, 2, 3, 3) of frames start+1 .. T-1 of ``scene`` (T frames
+        of its duration), and the static track's. From rest where ``start`` is 0 (deviations zero before t = 0);
+        from frame ``start`` of the LGVI's ``positions`` (its true deviations before) otherwise."""
+        T = int(round(scene.duration / self.task.delta)) + 1
+        if positions is None:
+            if start:
+                raise ValueError("a start after rest needs the LGVI's positions for its history")
+            times = [k * self.task.delta for k in range(T)]
+            P, R, _ = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
+                                          **base_pose(scene))
+            s, d = static_state(P, R, self.rest), torch.zeros(T, 12, dtype=torch.float64)
+        else:
+            s, d, (P, R) = profile_tracks(self.task, scene, positions, self.rest, cache)
+        dev = rollout_from(self.model, s, d, start)
+        cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
+        return cp, Rp, P[start + 1:], R[start + 1:]
+
+    def latency(self, scene, n: int = 50, compile: bool = False) -> dict:
+        """Median seconds of one real-time step at batch 1 along ``scene``'s first ``n`` steps: the static solve
+        at the next frame's currents (warm-started) and the correction, separately. ``compile``: the solver's
+        compiled fast path (:mod:`physics.cosserat_fast`) in the coils' field tabulated over the workspace
+        (:func:`~cmlearn.surrogate.magnetic.field_table`, 1e-8 of the exact field; the exact field's coil model
+        cannot be traced); its first solve compiles (about three minutes here) and is not timed."""
+        from physics.scenes_cosserat import paper2_magnetic_rod
+
+        c = self.model.config
+        sc = paper2_magnetic_rod(13)
+        solver, pose, emns = sc.solver(compile=compile), base_pose(scene), scene.loads.field.emns
+        if compile:
+            table = field_table(emns)
+            hook = lambda I: TabulatedField(table, I)  # noqa: E731
+        else:
+            hook = lambda I: field_hook(emns, I)  # noqa: E731
+        sol = sc.solve(solver, field=hook(torch.zeros(emns.n_coils, dtype=torch.float64)), load_steps=4, **pose)
+        dev, st = torch.zeros(1, c.eta + 1, 12), torch.zeros(1, c.increments + 1, 12)
+        t_solve, t_net = [], []
+        with torch.no_grad():
+            for k in range(1, n + 1):
+                I = torch.as_tensor(scene.loads.field.currents(torch.tensor(k * self.task.delta, dtype=torch.float64)))
+                t0 = time.perf_counter()
+                sol = sc.solve(solver, field=hook(I.double()), init=sol, **pose)
+                t1 = time.perf_counter()
+                d = self.model(dev, st)
+                t2 = time.perf_counter()
+                dev = torch.cat([dev[:, 1:], d[:, None]], 1)
+                t_solve.append(t1 - t0)
+                t_net.append(t2 - t1)
+        med = lambda x: sorted(x)[len(x) // 2]  # noqa: E731
+        return {"static_solve_s": med(t_solve), "correction_s": med(t_net), "step_s": med(t_solve) + med(t_net)}
+
+
+def short_check(engine: QuasiStaticSurrogate, duration: float = 1.5, data_dir: str | Path | None = None) -> dict:
+    """The hybrid from rest against the LGVI over the printed profile's first ``duration`` s (its first move):
+    what a checkpoint records and a test reproduces."""
+    task = engine.task
+    scene = replace(task.base_scene(), duration=duration)
+    pts = reference_rollout(task, task.scene, duration, data_dir)[0]
+    _, Rp, _, Rs = engine.run(scene)
+    R_ref = magnet_frames(task, scene.rod, pts[1:].double())[1]
+    e, es = orientation_errors(Rp, R_ref).abs(), orientation_errors(Rs, R_ref).abs()
+    return {"scene": task.scene, "duration": duration, "sum_mean_deg": float(e.mean(0).sum()),
+            "max_deg": float(e.max()), "static_sum_mean_deg": float(es.mean(0).sum())}
+
+
+def evaluate_quasistatic(engine: QuasiStaticSurrogate, data_dir: str | Path | None = None) -> dict:
+    """Orientation errors (deg) of the hybrid and of the static rod alone, per profile of the task (the printed
+    one's last 40 % from the cut, the held-out ones from rest), with the sums of the six means."""
+    task = engine.task
+    out = {}
+    for name in (task.scene, *task.heldout):
+        scene = task.scene_by_name(name)
+        pts = reference_rollout(task, name, data_dir=data_dir)[0]
+        cache = None if data_dir is None else Path(data_dir) / f"{task.name}_{name}_static_{pts.shape[0]}.pt"
+        printed = name == task.scene
+        start = split_ranges(1, pts.shape[0])["test"][0][1] if printed else 0
+        t0 = time.perf_counter()
+        _, Rp, _, Rs = engine.run(scene, pts if printed else None, start, cache)
+        wall = time.perf_counter() - t0
+        R_ref = magnet_frames(task, scene.rod, pts[start + 1:].double())[1]
+        res = {}
+        for model, R in (("hybrid", Rp), ("static", Rs)):
+            e = orientation_errors(R, R_ref)
+            res[model] = {**orientation_stats(e), "sum_mean_deg": float(e.abs().mean(0).sum())}
+        res["wall_s"] = wall
+        out[f"{name} (last 40 %)" if printed else name] = res
+    return out

@@ -1,0 +1,94 @@
+"""Lightning training of the quasi-static hybrid's correction (:class:`~cmlearn.models.QuasiStaticCorrection`),
+imported only for training.
+
+Data: a task's dataset (the LGVI's runs of its current profiles) and the static Cosserat rod along the same
+profiles (:func:`~cmlearn.surrogate.quasistatic.static_tracks`, cached next to the dataset), as static states
+and deviations (V, T, 12) (:mod:`cmlearn.data.quasistatic`). Splits are
+:func:`~cmlearn.data.windows.split_ranges`' (the printed profile's first 60 % and all other profiles but the
+last train; the last validates). The linear part is
+fitted on the training frames first (:meth:`QuasiStaticCorrection.fit_linear`); the loss is then the mean
+absolute deviation error, in units of ``dev_scale``, of free-running rollouts of ``horizon`` steps from the
+true history at random frames; validation rolls out ``val_horizon`` steps from every ``val_stride``-th frame.
+"""
+from __future__ import annotations
+
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from cmlearn.data.windows import split_ranges
+from cmlearn.models.quasistatic import QuasiStaticCorrection
+
+__all__ = ["fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
+
+
+def fit_scales(s: torch.Tensor, d: torch.Tensor, ranges) -> dict:
+    """:class:`~cmlearn.models.QuasiStaticConfig` keywords: per-coordinate scales of the deviations, the static
+    increments and the static states on the frame ranges [(variant, first, last)]."""
+    S = torch.cat([s[v, a:b + 1] for v, a, b in ranges])
+    D = torch.cat([d[v, a:b + 1] for v, a, b in ranges])
+    inc = torch.cat([s[v, a + 1:b + 1] - s[v, a:b] for v, a, b in ranges])
+    floor = 1e-3
+    return {"dev_scale": tuple((D.std(0) + floor).tolist()), "inc_scale": tuple((inc.std(0) + floor).tolist()),
+            "state_mean": tuple(S.mean(0).tolist()), "state_scale": tuple((S.std(0) + floor).tolist())}
+
+
+class DeviationWindows(Dataset):
+    """Windows of ``horizon`` steps from every ``stride``-th frame k0 of the ranges [(variant, first, last)]:
+    (deviations k0-eta..k0, static states k0+1-increments..k0+horizon, deviations k0+1..k0+horizon)."""
+
+    def __init__(self, s: torch.Tensor, d: torch.Tensor, ranges, eta: int, increments: int, horizon: int,
+                 stride: int = 1):
+        self.s, self.d, self.eta, self.n, self.H = s.float(), d.float(), eta, increments, horizon
+        lead = max(eta, increments - 1)
+        self.starts = [(v, k) for v, a, b in ranges for k in range(max(a, lead), b - horizon + 1, stride)]
+        if not self.starts:
+            raise ValueError(f"no window of {horizon} steps fits the ranges {ranges}")
+
+    def __len__(self):
+        return len(self.starts)
+
+    def __getitem__(self, i):
+        v, k = self.starts[i]
+        return (self.d[v, k - self.eta:k + 1], self.s[v, k + 1 - self.n:k + self.H + 1],
+                self.d[v, k + 1:k + self.H + 1])
+
+
+class QuasiStaticDataModule(L.LightningDataModule):
+    def __init__(self, s: torch.Tensor, d: torch.Tensor, eta: int, increments: int, horizon: int,
+                 val_horizon: int, batch_size: int = 64, val_stride: int = 8, seed: int = 0):
+        super().__init__()
+        ranges = split_ranges(s.shape[0], s.shape[1])
+        self.train_set = DeviationWindows(s, d, ranges["train"], eta, increments, horizon)
+        self.val_set = DeviationWindows(s, d, ranges["val"], eta, increments, val_horizon, val_stride)
+        self.batch_size, self.seed = batch_size, seed
+
+    def train_dataloader(self):
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, drop_last=True,
+                          generator=torch.Generator().manual_seed(self.seed))
+
+    def val_dataloader(self):
+        return DataLoader(self.val_set, batch_size=256)
+
+
+class QuasiStaticModule(L.LightningModule):
+    def __init__(self, model: QuasiStaticCorrection, lr: float = 1e-3, epochs: int = 30):
+        super().__init__()
+        self.model, self.lr, self.epochs = model, lr, epochs
+
+    def loss(self, batch) -> torch.Tensor:
+        dev, s, target = batch
+        return ((self.model.rollout(dev, s) - target).abs() / self.model.dev_scale).mean()
+
+    def training_step(self, batch, _):
+        loss = self.loss(batch)
+        self.log("train_loss", loss, prog_bar=True, on_step=False, on_epoch=True)
+        return loss
+
+    def validation_step(self, batch, _):
+        self.log("val_loss", self.loss(batch), prog_bar=True, on_epoch=True)
+
+    def configure_optimizers(self):
+        opt = torch.optim.Adam(self.model.parameters(), lr=self.lr)
+        return {"optimizer": opt, "lr_scheduler": torch.optim.lr_scheduler.CosineAnnealingLR(opt, self.epochs)}
