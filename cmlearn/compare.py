@@ -6,7 +6,8 @@ speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summa
 (``--compile``) the surrogate's step is compiled ahead of time (:meth:`cmlearn.surrogate.Surrogate.compile`) in a
 first rollout, timed apart, and the second rollout is the one timed and compared. On the
 magnetic rod (``magnetic_rod``, ``magnetic_rod_heldout``) it also prints the magnets' orientation errors
-in degrees of the surrogate (closed loop) and of the static Cosserat model, and the latter's wall time.
+in degrees of the surrogate (closed loop), of the static Cosserat model and of the quasi-static hybrid (where
+``checkpoints/<task>_quasistatic.pt`` is shipped), and their wall times.
 """
 from __future__ import annotations
 
@@ -162,7 +163,8 @@ def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = N
     compiled = f" (compiled; its compile {res['surrogate_compile_s']:.1f} s apart)" if res["surrogate_compiled"] else ""
     print(f"  wall time: LGVI {res['lgvi_wall_s']:.2f} s, surrogate {res['surrogate_wall_s']:.3f} s{compiled}, "
           f"speed-up {res['speedup']:.0f}x" + (f"; static Cosserat {res['cosserat_wall_s']:.2f} s"
-                                               if "cosserat_wall_s" in res else ""))
+                                               if "cosserat_wall_s" in res else "") +
+          (f"; quasi-static hybrid {res['hybrid_wall_s']:.2f} s" if "hybrid_wall_s" in res else ""))
     paths = _plots(res, out)
     summary = {k: v for k, v in res.items() if not k.startswith("_")}
     js = out / "summary.json"

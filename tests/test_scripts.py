@@ -139,6 +139,30 @@ def test_train_surrogate_quick_closed_loop(tmp_path):
     assert not list((tmp_path / "data").glob("semicircle*"))  # refused before generating any data
 
 
+def test_train_quasistatic_quick_writes_a_loadable_hybrid(tmp_path, capsys):
+    """The hybrid's training script end to end on its smoke budget (LGVI and static tracks of 1 s), and its
+    argument checks."""
+    from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate
+    res = run_script([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--out", "q.pt", "--log-dir", "logs"],
+                     tmp_path)
+    meta = json.loads((tmp_path / "q.json").read_text())
+    assert res["checkpoint"].endswith("q.pt") and meta["format"] == "cmlearn-quasistatic/1"
+    assert meta["command"].startswith("python scripts/train_quasistatic.py --quick") and meta["data_hash"]
+    assert meta["epochs_run"] == 2 and math.isfinite(meta["linear_fit_residual"])
+    engine = QuasiStaticSurrogate.load(tmp_path / "q.pt", task="magnetic_rod")
+    assert engine.model.config.eta == 2 and list((tmp_path / "logs").rglob("metrics.csv"))
+    for extra, msg in ((["--eta", "1"], "--eta must be >= 2"), (["--fresh", "2", "--fresh-seed", "0"], "--fresh"),
+                       (["--variants", "2"], "--variants must be >= 3"), (["--horizon", "0"], "--horizon must be >= 1")):
+        parse_fails("train_quasistatic", extra, msg, capsys)
+
+
+def test_bench_quasistatic_quick(tmp_path):
+    res = run_script([str(ROOT / "scripts/bench/quasistatic.py"), "--quick"], tmp_path)
+    for key in ("hybrid_step_hz", "lgvi_step_hz", "lstm_closed_loop_step_hz", "speedup_per_simulated_second"):
+        assert res[key] > 0, key
+    assert res["batch"] == 1 and res["check"]["sum_mean_deg"] < res["check"]["static_sum_mean_deg"] + 0.05
+
+
 def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path, capsys):
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
                 "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs", "--rest-anchor",

@@ -345,7 +345,8 @@ def test_shipped_checkpoint_reproduces_its_check_and_compare_prints_degrees(tmp_
     summary = run_compare("magnetic_rod_heldout", duration=0.1, out=tmp_path)
     out = capsys.readouterr().out
     assert "distal magnet orientation: about x max" in out and "deg" in out and "static Cosserat" in out
-    assert set(summary["orientation_deg"]) == {"surrogate", "cosserat"}
+    assert "hybrid distal magnet orientation" in out and "quasi-static hybrid" in out  # the shipped hybrid too
+    assert set(summary["orientation_deg"]) == {"surrogate", "cosserat", "hybrid"}
 
 
 def test_real_time_closed_loop_runs_in_the_tabulated_field_and_compiles():

@@ -1,0 +1,126 @@
+"""Benchmark: the quasi-static hybrid's real-time step against the LGVI and the LSTM surrogate, same run.
+
+    python scripts/bench/quasistatic.py [--quick] [--task magnetic_rod] [--scene NAME] [--rounds R] [--compile]
+
+One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`) is the static Cosserat
+solve at the next frame's currents, warm-started from the step before (13 nodes, float64, eager), and the
+learned correction (float32); with ``--compile`` also with the solver's compiled path (its compile timed
+apart); the LSTM surrogate's (``checkpoints/<task>.pt``) is its closed-loop step in the
+tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In ``--rounds`` rounds each is
+timed once in turn, along the scene's first steps; the wall time per simulated second of each, and the LGVI's
+over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static rod's orientation
+errors over the printed profile's first move (:func:`cmlearn.surrogate.quasistatic.short_check`). Batch 1,
+``--threads`` threads (default 1), CPU. Last line: one JSON object.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from statistics import mean, median
+
+import torch
+
+from cmlearn.compare import find_checkpoint
+from cmlearn.data import get_task
+from cmlearn.surrogate import Surrogate
+from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, short_check
+
+
+def lgvi_block(scene, steps: int):
+    """``block()``: seconds per simulated second of the eager LGVI over its next ``steps`` steps of one rollout of
+    ``scene`` continued from call to call."""
+    sim = scene.make_integrator()
+    cfg = scene.initial_configuration()
+    state = [sim.initial_state(p=cfg["p"], R=cfg.get("R"))]
+
+    def block() -> float:
+        t0 = time.perf_counter()
+        state[0] = sim.simulate(state[0], n_steps=steps, record_every=steps)[0]
+        return (time.perf_counter() - t0) / (steps * scene.dt)
+    return block
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", default="magnetic_rod", choices=("magnetic_rod", "magnetic_rod_planar"))
+    ap.add_argument("--scene", default="", help="one of the task's scenes (default: the held-out one)")
+    ap.add_argument("--rounds", type=int, default=0, help="rounds of timing (default 5, --quick 2)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--compile", action="store_true", help="also time the hybrid with the solver's compiled path")
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args(argv)
+    if a.rounds < 0 or a.threads < 1:
+        raise SystemExit("--rounds must be >= 0 and --threads >= 1")
+    rounds = a.rounds or (2 if a.quick else 5)
+    torch.set_num_threads(a.threads)
+    task = get_task(a.task)
+    scene = task.scene_by_name(a.scene or task.heldout[0])
+    hybrid = QuasiStaticSurrogate.load(find_checkpoint(f"{task.name}_quasistatic"), task=task.name)
+    lstm = Surrogate.load(find_checkpoint(task.name), task=task.name)
+    n = 10 if a.quick else 50  # hybrid / LSTM steps a round
+    lgvi_steps = 25 if a.quick else 250  # LGVI steps a round (its dt is 0.08 ms)
+    latency = task.hook("closed_loop_latency")
+    short = replace(scene, duration=0.2)
+    step_s = {"hybrid": [], "hybrid_static_solve": [], "hybrid_correction": [], "lstm": [], "lgvi_per_sim": [],
+              "hybrid_compiled": []}
+    block = lgvi_block(scene, lgvi_steps)
+    compile_s = None
+    if a.compile:
+        t0 = time.perf_counter()
+        hybrid.latency(scene, n=1, compile=True)
+        compile_s = time.perf_counter() - t0
+    for _ in range(rounds):
+        if a.compile:
+            step_s["hybrid_compiled"].append(hybrid.latency(scene, n=n, compile=True)["step_s"])
+        h = hybrid.latency(scene, n=n)
+        step_s["hybrid"].append(h["step_s"])
+        step_s["hybrid_static_solve"].append(h["static_solve_s"])
+        step_s["hybrid_correction"].append(h["correction_s"])
+        step_s["lstm"].append(latency(lstm, short, n=n))
+        step_s["lgvi_per_sim"].append(block())
+    d = task.delta
+    ratios = [lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid"])]
+    t0 = time.perf_counter()
+    check = short_check(hybrid, duration=0.5 if a.quick else 1.5)
+    res = {"task": task.name, "scene": scene.name, "rounds": rounds, "batch": 1, "threads": a.threads,
+           "dtype_static": "float64", "dtype_correction": "float32", "dtype_lgvi": "float64", "device": "cpu",
+           "surrogate_delta_s": d, "lgvi_dt_s": scene.dt,
+           "hybrid_step_hz": 1 / median(step_s["hybrid"]), "hybrid_step_ms": median(step_s["hybrid"]) * 1e3,
+           "hybrid_static_solve_ms": median(step_s["hybrid_static_solve"]) * 1e3,
+           "hybrid_correction_us": median(step_s["hybrid_correction"]) * 1e6,
+           "hybrid_real_time_factor": d / median(step_s["hybrid"]),
+           "lstm_closed_loop_step_hz": 1 / median(step_s["lstm"]),
+           "lgvi_step_hz": 1 / (mean(step_s["lgvi_per_sim"]) * scene.dt),
+           "lgvi_wall_per_sim_s": mean(step_s["lgvi_per_sim"]),
+           "hybrid_wall_per_sim_s": median(step_s["hybrid"]) / d,
+           "speedup_per_simulated_second": mean(ratios), "speedup_rounds": [min(ratios), mean(ratios), max(ratios)],
+           "check": check, "check_wall_s": time.perf_counter() - t0}
+    if a.compile:
+        res.update({"hybrid_step_ms_compiled": median(step_s["hybrid_compiled"]) * 1e3,
+                    "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
+                    "speedup_per_simulated_second_compiled": mean(
+                        lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
+                    "compile_s": compile_s})
+    print(f"{task.name} ({scene.name}), batch 1, {a.threads} thread(s), {rounds} rounds: hybrid step "
+          f"{res['hybrid_step_ms']:.1f} ms ({res['hybrid_step_hz']:.0f} steps/s; static solve "
+          f"{res['hybrid_static_solve_ms']:.1f} ms, correction {res['hybrid_correction_us']:.0f} us), "
+          f"{res['hybrid_real_time_factor']:.2f}x real time at its {d * 1e3:.0f} ms step")
+    if a.compile:
+        print(f"  compiled solver (first solve {compile_s:.0f} s): hybrid step "
+              f"{res['hybrid_step_ms_compiled']:.1f} ms, "
+              f"{res['hybrid_real_time_factor_compiled']:.2f}x real time, "
+              f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second")
+    print(f"  LSTM closed loop {res['lstm_closed_loop_step_hz']:.0f} steps/s; LGVI {res['lgvi_step_hz']:.0f} steps/s "
+          f"({res['lgvi_wall_per_sim_s']:.2f} s per simulated second) -> hybrid "
+          f"{res['speedup_per_simulated_second']:.1f}x "
+          f"faster per simulated second (rounds {min(ratios):.1f}-{max(ratios):.1f})")
+    print(f"  orientation errors over the printed profile's first {check['duration']} s: hybrid "
+          f"{check['sum_mean_deg']:.3f} deg (sum of six means), static rod {check['static_sum_mean_deg']:.3f}")
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()
