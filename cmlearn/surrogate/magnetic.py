@@ -408,13 +408,10 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     except FileNotFoundError:  # no quasi-static hybrid shipped for this task
         path = None
     if path is not None:  # the hybrid on the same static track: its correction's time on top of the solves'
-        from cmlearn.data.quasistatic import compose, static_state
-
-        from .quasistatic import QuasiStaticSurrogate, rollout_from
+        from .quasistatic import QuasiStaticSurrogate
         hyb = QuasiStaticSurrogate.load(path, task=task.name)
         t0 = time.perf_counter()
-        s = static_state(P_cos, R_cos, hyb.rest)
-        R_hyb = compose(rollout_from(hyb.model, s, torch.zeros_like(s), 0), P_cos[1:], R_cos[1:])[1]
+        R_hyb = hyb.run(scene, track=(P_cos, R_cos))[1]
         hybrid = {"hybrid_wall_s": wall_cos + time.perf_counter() - t0}
         orient["hybrid"] = orientation_stats(orientation_errors(R_hyb, R_ref))
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,

@@ -56,12 +56,14 @@ def rest_rotations(task) -> Tensor:
                         scene.loads.field.emns, [0.0], **base_pose(scene))[1][0]
 
 
-def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None):
-    """Static state ``s`` and deviation ``d`` (T, 12) of a scene's LGVI run ``positions`` (T, n_tracked, 3) at
-    frames k delta, and the static track (P, R); the track cached at ``cache`` if given."""
-    times = [k * task.delta for k in range(positions.shape[0])]
-    P, R, _ = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
-                                  **base_pose(scene))
+def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None,
+                   currents=None):
+    """Static states ``s`` and deviations ``d`` (..., T, 12) of a scene's LGVI runs ``positions`` (..., T,
+    n_tracked, 3) at frames k delta, and the static track (P, R); the track cached at ``cache`` if given.
+    ``currents``: a batch of profiles ``currents(t) -> (V, C)`` instead of the scene's own."""
+    times = [k * task.delta for k in range(positions.shape[-3])]
+    P, R, _ = cached_static_track(cache, scene.loads.field.currents if currents is None else currents,
+                                  scene.loads.field.emns, times, **base_pose(scene))
     c, Rl, _ = magnet_frames(task, scene.rod, positions.double())
     return static_state(P, R, R_rest), deviation(c, Rl, P, R), (P, R)
 
@@ -105,16 +107,12 @@ def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tens
     track cached as ``<dataset>_static.pt`` in ``data_dir``)."""
     meta = dataset["meta"]
     scene = task.base_scene()
-    currents = task.variants(scene, meta["n_variants"], meta["seed"])["currents"]
-    pos = dataset["positions"].double()
-    times = [k * task.delta for k in range(pos.shape[1])]
     cache = None
     if data_dir is not None:
         cache = dataset_path(data_dir, task.name, meta["n_variants"], meta["seed"]).with_suffix("")
         cache = cache.with_name(cache.name + "_static.pt")
-    P, R, _ = cached_static_track(cache, currents, scene.loads.field.emns, times, **base_pose(scene))
-    c, Rl, _ = magnet_frames(task, scene.rod, pos)
-    return static_state(P, R, R_rest), deviation(c, Rl, P, R)
+    return profile_tracks(task, scene, dataset["positions"], R_rest, cache,
+                          task.variants(scene, meta["n_variants"], meta["seed"])["currents"])[:2]
 
 
 def fresh_scores(model: QuasiStaticCorrection, task, n_variants: int, seed: int, data_dir: str | Path | None) -> dict:
@@ -168,18 +166,21 @@ class QuasiStaticSurrogate:
         return self._rest
 
     @torch.no_grad()
-    def run(self, scene, positions: Tensor | None = None, start: int = 0, cache=None):
+    def run(self, scene, positions: Tensor | None = None, start: int = 0, cache=None, track=None):
         """Magnet centres (H, 2, 3) and rotations (H, 2, 3, 3) of frames start+1 .. T-1 of ``scene`` (T frames
         of its duration), and the static track's. From rest where ``start`` is 0 (deviations zero before t = 0);
-        from frame ``start`` of the LGVI's ``positions`` (its true deviations before) otherwise."""
+        from frame ``start`` of the LGVI's ``positions`` (its true deviations before) otherwise. ``track``: the
+        scene's static track (P, R) at its T frames where already solved."""
         T = int(round(scene.duration / self.task.delta)) + 1
         if positions is None:
             if start:
                 raise ValueError("a start after rest needs the LGVI's positions for its history")
-            times = [k * self.task.delta for k in range(T)]
-            P, R, _ = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
-                                          **base_pose(scene))
-            s, d = static_state(P, R, self.rest), torch.zeros(T, 12, dtype=torch.float64)
+            if track is None:
+                times = [k * self.task.delta for k in range(T)]
+                track = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
+                                            **base_pose(scene))
+            P, R = track[0], track[1]
+            s, d = static_state(P, R, self.rest), torch.zeros(P.shape[0], 12, dtype=torch.float64)
         else:
             s, d, (P, R) = profile_tracks(self.task, scene, positions, self.rest, cache)
         dev = rollout_from(self.model, s, d, start)
