@@ -1152,3 +1152,4 @@ def test_notebook_executes_on_a_short_case(monkeypatch):
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.get("output_type") == "error"]
     assert any("speed-up" in str(o.get("data", {})) for o in outputs)
+    assert any("quasi-static hybrid" in str(o.get("data", {})) for o in outputs)  # the magnetic rod's models
