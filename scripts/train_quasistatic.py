@@ -12,24 +12,20 @@ line last.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
 import cmlearn
+from cmlearn.args import dataclass_parser, opt
 from cmlearn.data import cached_dataset, get_task
 
 MAGNETIC_TASKS = ("magnetic_rod", "magnetic_rod_planar")
-
-
-def opt(default, help: str, choices=None):
-    return field(default=default, metadata={"help": help, "choices": choices})
 
 
 @dataclass
@@ -62,14 +58,7 @@ class Args:
 
 
 def parse(argv=None) -> Args:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    for f in fields(Args):
-        flag, help = f"--{f.name.replace('_', '-')}", f.metadata["help"]
-        if f.type in ("bool", bool):
-            ap.add_argument(flag, action="store_true", help=help)
-        else:
-            ap.add_argument(flag, type=type(f.default), default=f.default, help=help, choices=f.metadata["choices"])
+    ap = dataclass_parser(Args, __doc__.splitlines()[0])
     a = Args(**vars(ap.parse_args(argv)))
     if a.eta < 2:
         ap.error(f"--eta must be >= 2 (Paper II's history), got {a.eta}")

@@ -15,17 +15,17 @@ the metrics and this exact command. Prints one JSON line last.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
 import cmlearn
+from cmlearn.args import dataclass_parser, opt
 from cmlearn.data import TASKS, cached_dataset, get_task
 from cmlearn.models import NodeLSTMSurrogate
 from cmlearn.surrogate import save_checkpoint
@@ -34,11 +34,6 @@ from cmlearn.surrogate.evaluate import evaluate_scenes, metric_lines, recorded_c
 
 
 SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
-
-
-def opt(default, help: str, choices=None):
-    """A dataclass field whose ``help`` is the argument's ``--help`` text (and ``choices`` its valid values)."""
-    return field(default=default, metadata={"help": help, "choices": choices})
 
 
 @dataclass
@@ -131,14 +126,7 @@ class Args:
 
 
 def parse(argv=None) -> Args:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    for f in fields(Args):
-        flag, help = f"--{f.name.replace('_', '-')}", f.metadata["help"]
-        if f.type in ("bool", bool):
-            ap.add_argument(flag, action="store_true", help=help)
-        else:
-            ap.add_argument(flag, type=type(f.default), default=f.default, help=help, choices=f.metadata["choices"])
+    ap = dataclass_parser(Args, __doc__.splitlines()[0])
     a = Args(**vars(ap.parse_args(argv)))
     try:
         get_task(a.task).reflections(a.mirror)
