@@ -18,7 +18,7 @@ import torch
 from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
-__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "surrogate_checkpoints", "provenance"]
+__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "read_blob", "load_checkpoint", "surrogate_checkpoints", "provenance"]
 
 FORMAT = "cmlearn-surrogate/1"
 _CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
@@ -34,8 +34,10 @@ def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> P
     return path
 
 
-def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTMSurrogate, dict]:
-    """The model (eval mode, float32, CPU) and its metadata; :class:`CheckpointError` on any problem."""
+def read_blob(path: str | Path, fmt: str, task: str | None = None) -> tuple[dict, dict]:
+    """The dict a checkpoint of format ``fmt`` holds, and its metadata, loaded on the CPU with
+    ``weights_only``; :class:`CheckpointError` for a missing, unreadable or truncated file, another format,
+    or (``task`` given) another task."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
@@ -43,14 +45,20 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure means an unusable file
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
-    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a {FORMAT} checkpoint")
-    cls = _CLASSES.get(blob.get("model_class"))
-    if cls is None:
-        raise CheckpointError(f"{path}: unknown model class {blob.get('model_class')!r}")
+    if not isinstance(blob, dict) or blob.get("format") != fmt:
+        raise CheckpointError(f"{path}: not a {fmt} checkpoint")
     meta = blob.get("meta", {})
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
+    return blob, meta
+
+
+def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTMSurrogate, dict]:
+    """The model (eval mode, float32, CPU) and its metadata; :class:`CheckpointError` on any problem."""
+    blob, meta = read_blob(path, FORMAT, task)
+    cls = _CLASSES.get(blob.get("model_class"))
+    if cls is None:
+        raise CheckpointError(f"{path}: unknown model class {blob.get('model_class')!r}")
     cfg = dict(blob["config"])
     for key in ("modeled", "left", "right", "left2", "right2", "left3", "right3"):
         if cfg.get(key) is not None:

@@ -30,6 +30,7 @@ from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
 from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from physics.lie import so3_exp
 
+from .checkpoint import read_blob
 from .magnetic import base_pose, field_table, orientation_errors, orientation_stats
 
 __all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "profile_tracks", "rollout_from",
@@ -140,18 +141,7 @@ class QuasiStaticSurrogate:
 
     @classmethod
     def load(cls, path: str | Path, task: str | None = None) -> "QuasiStaticSurrogate":
-        path = Path(path)
-        if not path.is_file():
-            raise CheckpointError(f"{path}: no such checkpoint file")
-        try:
-            blob = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:  # noqa: BLE001 - any unpickling failure means an unusable file
-            raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
-        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-            raise CheckpointError(f"{path}: not a {FORMAT} checkpoint")
-        meta = blob.get("meta", {})
-        if task is not None and meta.get("task") != task:
-            raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
+        blob, meta = read_blob(path, FORMAT, task)
         try:
             model = QuasiStaticCorrection(QuasiStaticConfig(**blob["config"]))
             model.load_state_dict(blob["state_dict"])
