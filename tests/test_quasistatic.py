@@ -155,3 +155,43 @@ def test_the_shipped_hybrid_reproduces_its_recorded_check_and_beats_the_static_r
     assert fresh["profiles"] == 8 and fresh["hybrid"]["median"] < 0.6 * fresh["static"]["median"]
     for case, res in metrics.items():  # the recorded figures the README prints
         assert res["hybrid"]["sum_mean_deg"] < 0.6 * res["static"]["sum_mean_deg"], case
+
+
+def test_the_stability_margin_falls_to_zero_at_a_snap_through():
+    """The held-out profile's first snap-through (frame 108, 2.16 s): the smallest singular value of the static
+    solution's shooting Jacobian falls like the square root of the distance to the fold (its square about
+    linearly), to a fraction of its value, and recovers on the new branch, where the magnets have turned."""
+    from cmlearn.data.quasistatic import static_track
+    from cmlearn.data.tasks import get_task
+    from cmlearn.surrogate.magnetic import base_pose
+    torch.set_num_threads(1)
+    scene = get_task("magnetic_rod").scene_by_name("magnetic_rod_heldout")
+    tr = static_track(scene.loads.field.currents, scene.loads.field.emns, [0.02 * k for k in range(111)],
+                      **base_pose(scene))
+    m = tr.margin
+    jump = int((tr.R[1:] - tr.R[:-1]).abs().amax((-1, -2, -3)).argmax()) + 1  # the frame the track jumps to
+    assert jump == 108
+    before = m[jump - 8:jump]
+    assert bool((before[1:] < before[:-1]).all()) and m[jump - 1] < 0.3 * m[:jump - 20].median()
+    sq = before.pow(2)  # about linear in time towards the fold: equal steps within a factor of two
+    steps = sq[:-1] - sq[1:]
+    assert steps.max() < 2.5 * steps.min()
+    assert m[jump] > 2 * m[jump - 1]
+
+
+def test_the_margin_option_reads_the_thirteenth_column_and_keeps_the_rest_anchor():
+    torch.manual_seed(0)
+    cfg = QuasiStaticConfig(eta=2, increments=3, hidden=8, width=16, margin=True, margin_scale=0.3, rest_margin=0.7,
+                            rest_state=tuple(torch.randn(12).tolist()))
+    model = QuasiStaticCorrection(cfg)
+    for p in model.parameters():  # a trained network is not zero
+        torch.nn.init.normal_(p, std=0.3)
+    rest = torch.tensor(cfg.rest_state + (cfg.rest_margin,)).expand(1, 4, 13)
+    assert model(torch.zeros(1, 3, 12), rest).abs().max() == 0  # at rest it stays at rest
+    lower = rest.clone()
+    lower[..., 12] = 0.1  # near a fold
+    assert model(torch.zeros(1, 3, 12), lower).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="static must be"):
+        model(torch.zeros(1, 3, 12), rest[..., :12])
+    with pytest.raises(ValueError, match="margin_scale"):
+        QuasiStaticConfig(margin_scale=0.0)

@@ -10,7 +10,8 @@ the dynamic rod follows in about 0.2 s, with overshoot.
 Coordinates (12 per frame, two magnets in :data:`~cmlearn.surrogate.magnetic.MAGNETS` order):
 
 * static state ``s``: the two magnet centres (mm) and the rotation vectors (deg) of the magnets' rotations
-  relative to their rotations at rest (the static rod at zero current);
+  relative to their rotations at rest (the static rod at zero current), and as a 13th column the solution's
+  stability margin (:func:`stability_margin`), which tells a snap-through coming;
 * deviation ``d``: the LGVI's block centres minus the static ones (mm) and the rotation vectors (deg) of
   ``R_lgvi R_static^T`` (world frame), so that :func:`compose` rebuilds the LGVI's magnets from ``s`` and ``d``.
 """
@@ -19,6 +20,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -26,8 +28,8 @@ from torch import Tensor
 from cmlearn.io import save_torch_atomic
 from physics.lie import so3_exp, so3_log
 
-__all__ = ["N_COORDS", "field_hook", "TabulatedField", "static_track", "static_state", "deviation", "compose",
-           "cached_static_track"]
+__all__ = ["N_COORDS", "field_hook", "TabulatedField", "StaticTrack", "stability_margin", "static_track",
+           "static_state", "deviation", "compose", "cached_static_track"]
 
 N_COORDS = 12
 _DEG = 180.0 / math.pi
@@ -55,31 +57,50 @@ class TabulatedField:
         return self.table.field_and_gradient(x, self.currents, check=False)
 
 
-def static_track(currents, emns, times, n_nodes: int = 13, **pose) -> tuple[Tensor, Tensor, float]:
-    """Magnet centres (..., T, 2, 3) and rotations (..., T, 2, 3, 3) of the static Cosserat rod at ``times``
-    (s) with ``currents(t) -> (C,)`` or ``(V, C)`` A (then ``...`` = V), each solve warm-started from the one
-    before; also the solver wall time (s). ``pose``: the clamp (:func:`cmlearn.surrogate.magnetic.base_pose`)."""
+class StaticTrack(NamedTuple):
+    """The static rod along a profile: magnet centres ``P`` (..., T, 2, 3), rotations ``R`` (..., T, 2, 3, 3),
+    the stability ``margin`` (..., T) and the solver's wall time (s)."""
+
+    P: Tensor
+    R: Tensor
+    margin: Tensor
+    wall_s: float
+
+
+def stability_margin(sol) -> Tensor:
+    """The smallest singular value (...,) of a static solution's scaled shooting Jacobian: it falls towards
+    zero as the loads approach a fold of the equilibrium (where the rod snaps over), like the square root of the
+    distance to it, so the last few frames' margins tell when within the next frame the branch ends."""
+    return torch.linalg.svdvals(sol.jacobian)[..., -1]
+
+
+def static_track(currents, emns, times, n_nodes: int = 13, **pose) -> StaticTrack:
+    """The static Cosserat rod at ``times`` (s) with ``currents(t) -> (C,)`` or ``(V, C)`` A (then ``...`` = V),
+    each solve warm-started from the one before (:class:`StaticTrack`). ``pose``: the clamp
+    (:func:`cmlearn.surrogate.magnetic.base_pose`)."""
     from physics.scenes_cosserat import paper2_magnetic_rod
     if len(times) == 0:
         raise ValueError("times must hold at least one time")
     sc = paper2_magnetic_rod(n_nodes)
     solver = sc.solver()
     nodes = list(sc.rod.grid.magnet_nodes)
-    P, R, sol = [], [], None
+    P, R, margin, sol = [], [], [], None
     t0 = time.perf_counter()
     for t in times:
         I = torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
         sol = sc.solve(solver, field=field_hook(emns, I), init=sol, load_steps=4 if sol is None else 1, **pose)
         P.append(sol.p[..., nodes, :])
         R.append(sol.R[..., nodes, :, :])
-    return torch.stack(P, -3), torch.stack(R, -4), time.perf_counter() - t0
+        margin.append(stability_margin(sol))
+    return StaticTrack(torch.stack(P, -3), torch.stack(R, -4), torch.stack(margin, -1), time.perf_counter() - t0)
 
 
-def static_state(P: Tensor, R: Tensor, R_rest: Tensor) -> Tensor:
+def static_state(P: Tensor, R: Tensor, R_rest: Tensor, margin: Tensor | None = None) -> Tensor:
     """``s`` (..., 12) of static magnet centres ``P`` (..., 2, 3) m and rotations ``R`` (..., 2, 3, 3) against
-    the rotations at rest ``R_rest`` (2, 3, 3)."""
+    the rotations at rest ``R_rest`` (2, 3, 3); with the stability ``margin`` (...) as a 13th column."""
     rot = so3_log(R @ R_rest.to(R).transpose(-1, -2)) * _DEG
-    return torch.cat([(P * 1e3).flatten(-2), rot.flatten(-2)], -1)
+    cols = [(P * 1e3).flatten(-2), rot.flatten(-2)] + ([] if margin is None else [margin[..., None].to(P)])
+    return torch.cat(cols, -1)
 
 
 def deviation(c: Tensor, R: Tensor, P: Tensor, Rs: Tensor) -> Tensor:
@@ -97,15 +118,15 @@ def compose(d: Tensor, P: Tensor, Rs: Tensor) -> tuple[Tensor, Tensor]:
     return P + dc, so3_exp(dth) @ Rs
 
 
-def cached_static_track(path: str | Path | None, currents, emns, times, **pose) -> tuple[Tensor, Tensor, float]:
+def cached_static_track(path: str | Path | None, currents, emns, times, **pose) -> StaticTrack:
     """:func:`static_track`, read from ``path`` where it holds the same ``times`` (and written there, atomically,
     where it does not); ``None``: no cache. The file does not know the currents: name it after them."""
     times = [float(t) for t in times]
     if path is not None and Path(path).exists():
         blob = torch.load(path, weights_only=True)
-        if blob.get("times") == times:
-            return blob["P"], blob["R"], float(blob["wall_s"])
-    P, R, wall = static_track(currents, emns, times, **pose)
+        if blob.get("times") == times and "margin" in blob:
+            return StaticTrack(blob["P"], blob["R"], blob["margin"], float(blob["wall_s"]))
+    track = static_track(currents, emns, times, **pose)
     if path is not None:
-        save_torch_atomic(path, {"P": P, "R": R, "wall_s": wall, "times": times})
-    return P, R, wall
+        save_torch_atomic(path, {**track._asdict(), "times": times})
+    return track
