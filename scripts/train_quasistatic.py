@@ -38,6 +38,8 @@ class Args:
     increments: int = opt(3, "static-state increments the step sees")
     hidden: int = opt(32, "LSTM units")
     width: int = opt(64, "dense widths")
+    margin: bool = opt(False, "the network also sees the static solutions' stability margins (they fall to zero "
+                              "as the rod nears a snap-through)")
     horizon: int = opt(32, "free-running steps per training window")
     val_horizon: int = opt(128, "free-running steps per validation window")
     val_stride: int = opt(8, "frames between validation windows")
@@ -96,7 +98,8 @@ def main(argv=None):
     t_data = time.perf_counter() - t0
     ranges = split_ranges(s.shape[0], s.shape[1])
     cfg = QuasiStaticConfig(eta=a.eta, increments=a.increments, hidden=a.hidden, width=a.width,
-                            rest_state=tuple(s[0, 0].tolist()), **fit_scales(s, d, ranges["train"]))
+                            rest_state=tuple(s[0, 0, :12].tolist()), margin=a.margin, rest_margin=float(s[0, 0, 12]),
+                            **fit_scales(s, d, ranges["train"]))
     model = QuasiStaticCorrection(cfg)
     residual = model.fit_linear(d, s, ranges["train"])
     dm = QuasiStaticDataModule(s, d, a.eta, a.increments, a.horizon, a.val_horizon, a.batch_size, a.val_stride,

@@ -39,6 +39,9 @@ class QuasiStaticConfig:
     state_mean: tuple[float, ...] = (0.0,) * N
     state_scale: tuple[float, ...] = (1.0,) * N
     rest_state: tuple[float, ...] = (0.0,) * N  # s of the rod at rest (the network's output there is removed)
+    margin: bool = False  # the network also sees the static solutions' stability margins (a 13th static column)
+    margin_scale: float = 1.0
+    rest_margin: float = 0.0  # the margin at rest
 
     def __post_init__(self):
         for name, lo in (("eta", 0), ("increments", 1), ("hidden", 1), ("width", 1)):
@@ -52,20 +55,23 @@ class QuasiStaticConfig:
             if name.endswith("scale") and not all(x > 0 for x in v):
                 raise ValueError(f"{name} must be positive, got {v}")
             setattr(self, name, v)
+        if not self.margin_scale > 0:
+            raise ValueError(f"margin_scale must be positive, got {self.margin_scale}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 class QuasiStaticCorrection(nn.Module):
-    """The step above; ``forward(dev, static)``: ``dev`` (B, eta+1, 12) and ``static`` (B, increments+1, 12),
-    each oldest first, ``static`` ending at frame k+1; returns ``d(k+1)`` (B, 12)."""
+    """The step above; ``forward(dev, static)``: ``dev`` (B, eta+1, 12) and ``static`` (B, increments+1, 12 or
+    13), each oldest first, ``static`` ending at frame k+1 (its 13th column the stability margins, which the
+    network reads where ``config.margin``); returns ``d(k+1)`` (B, 12)."""
 
     def __init__(self, config: QuasiStaticConfig):
         super().__init__()
         self.config = c = config
         self.lstm = nn.LSTM(N, c.hidden, batch_first=True)
-        self.dense = nn.Sequential(nn.Linear(N * c.increments + N, c.width), nn.Tanh())
+        self.dense = nn.Sequential(nn.Linear(N * c.increments + N + (c.increments + 1) * c.margin, c.width), nn.Tanh())
         self.head = nn.Sequential(nn.Linear(c.hidden + c.width, c.width), nn.Tanh(), nn.Linear(c.width, N))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
@@ -79,31 +85,41 @@ class QuasiStaticCorrection(nn.Module):
 
     def regressors(self, dev: Tensor, static: Tensor) -> Tensor:
         """The inputs of ``L`` (B, n_regressors): the deviations and the static increments, flattened."""
-        return torch.cat([dev.flatten(1), (static[:, 1:] - static[:, :-1]).flatten(1)], -1)
+        s = static[..., :N]
+        return torch.cat([dev.flatten(1), (s[:, 1:] - s[:, :-1]).flatten(1)], -1)
 
     def _check(self, dev: Tensor, static: Tensor):
         c = self.config
         if dev.dim() != 3 or dev.shape[1:] != (c.eta + 1, N):
             raise ValueError(f"dev must be (B, {c.eta + 1}, {N}), got {tuple(dev.shape)}")
-        if static.dim() != 3 or static.shape[1:] != (c.increments + 1, N) or static.shape[0] != dev.shape[0]:
-            raise ValueError(f"static must be ({dev.shape[0]}, {c.increments + 1}, {N}), got {tuple(static.shape)}")
+        cols = (N + 1,) if c.margin else (N, N + 1)  # a margin column is there or not, unless the network reads it
+        if static.dim() != 3 or static.shape[1] != c.increments + 1 or static.shape[2] not in cols or \
+                static.shape[0] != dev.shape[0]:
+            raise ValueError(f"static must be ({dev.shape[0]}, {c.increments + 1}, {' or '.join(map(str, cols))}), "
+                             f"got {tuple(static.shape)}")
 
-    def _network(self, dev: Tensor, inc: Tensor, state: Tensor) -> Tensor:
+    def _network(self, dev: Tensor, inc: Tensor, state: Tensor, margins: Tensor | None) -> Tensor:
         h = self.lstm(dev / self.dev_scale)[0][:, -1]
-        x = torch.cat([(inc / self.inc_scale).flatten(1), (state - self.state_mean) / self.state_scale], -1)
-        return self.head(torch.cat([h, self.dense(x)], -1)) * self.dev_scale
+        x = [(inc / self.inc_scale).flatten(1), (state - self.state_mean) / self.state_scale]
+        if margins is not None:
+            x.append(margins / self.config.margin_scale)
+        return self.head(torch.cat([h, self.dense(torch.cat(x, -1))], -1)) * self.dev_scale
 
     def forward(self, dev: Tensor, static: Tensor) -> Tensor:
         self._check(dev, static)
-        inc = static[:, 1:] - static[:, :-1]
+        c = self.config
+        s = static[..., :N]
+        inc = s[:, 1:] - s[:, :-1]
         linear = self.regressors(dev, static) @ self.linear
+        margins = static[..., N] if c.margin else None
         # the rest anchor: at rest (no deviation, no motion, the rest state) the step is exactly zero
-        rest = self._network(dev.new_zeros(1, *dev.shape[1:]), inc.new_zeros(1, *inc.shape[1:]), self.rest_state[None])
-        return linear + self._network(dev, inc, static[:, -1]) - rest
+        rest = self._network(dev.new_zeros(1, *dev.shape[1:]), inc.new_zeros(1, *inc.shape[1:]), self.rest_state[None],
+                             None if margins is None else margins.new_full((1, c.increments + 1), c.rest_margin))
+        return linear + self._network(dev, inc, s[:, -1], margins) - rest
 
     def rollout(self, dev: Tensor, static: Tensor) -> Tensor:
         """Free-running deviations (B, H, 12) after the history ``dev`` (B, eta+1, 12) ending at frame k0, along
-        the static states ``static`` (B, H + increments, 12) of frames k0+1-increments .. k0+H."""
+        the static states ``static`` (B, H + increments, 12 or 13) of frames k0+1-increments .. k0+H."""
         n = self.config.increments
         H = static.shape[1] - n
         if H < 1:
@@ -117,9 +133,9 @@ class QuasiStaticCorrection(nn.Module):
 
     @torch.no_grad()
     def fit_linear(self, dev: Tensor, static: Tensor, ranges) -> float:
-        """Least-squares ``L`` of one-step predictions over trajectories ``dev``, ``static`` (V, T, 12) on the
-        frame ranges [(variant, first, last)] (steps first..last-1 whose inputs lie in the range); sets the
-        buffer and returns the residual's RMS over the targets' RMS."""
+        """Least-squares ``L`` of one-step predictions over trajectories ``dev`` (V, T, 12), ``static`` (V, T, 12
+        or 13) on the frame ranges [(variant, first, last)] (steps first..last-1 whose inputs lie in the range);
+        sets the buffer and returns the residual's RMS over the targets' RMS."""
         c = self.config
         lo = max(c.eta, c.increments - 1)
         X, Y = [], []

@@ -180,8 +180,8 @@ def cosserat_orientations(currents, times, field_model, n_nodes: int = 13, **pos
     """Magnet rotations (T, 2, 3, 3) of the static Cosserat rod at ``times`` (s) with ``currents(t)``, each
     solve warm-started from the previous one; also the solver wall time (s). ``pose``: the clamp
     (:func:`base_pose`). :func:`cmlearn.data.quasistatic.static_track`'s rotations."""
-    _, R, wall = static_track(currents, field_model, times, n_nodes, **pose)
-    return R, wall
+    track = static_track(currents, field_model, times, n_nodes, **pose)
+    return track.R, track.wall_s
 
 
 def _position_metrics(pred: Tensor, ref: Tensor, slots, length: float) -> dict:
@@ -399,9 +399,9 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
     R_ref = magnet_frames(task, rod, p_ref[1:].double())[1]
     orient = {"surrogate": orientation_stats(orientation_errors(magnet_frames(task, rod, p_sur[1:].double())[1], R_ref))}
-    P_cos, R_cos, wall_cos = static_track(scene.loads.field.currents, scene.loads.field.emns, t.tolist(),
-                                          **base_pose(scene))
-    orient["cosserat"] = orientation_stats(orientation_errors(R_cos[1:], R_ref))
+    track = static_track(scene.loads.field.currents, scene.loads.field.emns, t.tolist(), **base_pose(scene))
+    wall_cos = track.wall_s
+    orient["cosserat"] = orientation_stats(orientation_errors(track.R[1:], R_ref))
     hybrid = {}
     try:
         path = find_checkpoint(f"{task.name}_quasistatic")
@@ -411,7 +411,7 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
         from .quasistatic import QuasiStaticSurrogate
         hyb = QuasiStaticSurrogate.load(path, task=task.name)
         t0 = time.perf_counter()
-        R_hyb = hyb.run(scene, track=(P_cos, R_cos))[1]
+        R_hyb = hyb.run(scene, track=track)[1]
         hybrid = {"hybrid_wall_s": wall_cos + time.perf_counter() - t0}
         orient["hybrid"] = orientation_stats(orientation_errors(R_hyb, R_ref))
     return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,

@@ -23,7 +23,7 @@ from torch import Tensor
 from cmlearn.data.generate import dataset_path, reference_rollout
 from cmlearn.data.magnetic import magnet_frames
 from cmlearn.data.quasistatic import (TabulatedField, cached_static_track, compose, deviation, field_hook,
-                                      static_state, static_track)
+                                      stability_margin, static_state, static_track)
 from cmlearn.data.tasks import get_task
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
@@ -59,14 +59,15 @@ def rest_rotations(task) -> Tensor:
 
 def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None,
                    currents=None):
-    """Static states ``s`` and deviations ``d`` (..., T, 12) of a scene's LGVI runs ``positions`` (..., T,
-    n_tracked, 3) at frames k delta, and the static track (P, R); the track cached at ``cache`` if given.
+    """Static states ``s`` (..., T, 13: with the margin) and deviations ``d`` (..., T, 12) of a scene's LGVI runs
+    ``positions`` (..., T, n_tracked, 3) at frames k delta, and the :class:`StaticTrack`; the track cached at
+    ``cache`` if given.
     ``currents``: a batch of profiles ``currents(t) -> (V, C)`` instead of the scene's own."""
     times = [k * task.delta for k in range(positions.shape[-3])]
-    P, R, _ = cached_static_track(cache, scene.loads.field.currents if currents is None else currents,
-                                  scene.loads.field.emns, times, **base_pose(scene))
+    track = cached_static_track(cache, scene.loads.field.currents if currents is None else currents,
+                                scene.loads.field.emns, times, **base_pose(scene))
     c, Rl, _ = magnet_frames(task, scene.rod, positions.double())
-    return static_state(P, R, R_rest), deviation(c, Rl, P, R), (P, R)
+    return static_state(track.P, track.R, R_rest, track.margin), deviation(c, Rl, track.P, track.R), track
 
 
 @torch.no_grad()
@@ -104,7 +105,7 @@ def profile_scores(model: QuasiStaticCorrection, s: Tensor, d: Tensor) -> Tensor
 
 
 def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tensor) -> tuple[Tensor, Tensor]:
-    """Static states and deviations (V, T, 12) of ``dataset``'s profiles (regenerated from its seed, the static
+    """Static states (V, T, 13) and deviations (V, T, 12) of ``dataset``'s profiles (regenerated from its seed, the static
     track cached as ``<dataset>_static.pt`` in ``data_dir``)."""
     meta = dataset["meta"]
     scene = task.base_scene()
@@ -160,7 +161,7 @@ class QuasiStaticSurrogate:
         """Magnet centres (H, 2, 3) and rotations (H, 2, 3, 3) of frames start+1 .. T-1 of ``scene`` (T frames
         of its duration), and the static track's. From rest where ``start`` is 0 (deviations zero before t = 0);
         from frame ``start`` of the LGVI's ``positions`` (its true deviations before) otherwise. ``track``: the
-        scene's static track (P, R) at its T frames where already solved."""
+        scene's :class:`~cmlearn.data.quasistatic.StaticTrack` at its T frames where already solved."""
         T = int(round(scene.duration / self.task.delta)) + 1
         if positions is None:
             if start:
@@ -169,10 +170,11 @@ class QuasiStaticSurrogate:
                 times = [k * self.task.delta for k in range(T)]
                 track = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
                                             **base_pose(scene))
-            P, R = track[0], track[1]
-            s, d = static_state(P, R, self.rest), torch.zeros(P.shape[0], 12, dtype=torch.float64)
+            P, R = track.P, track.R
+            s, d = static_state(P, R, self.rest, track.margin), torch.zeros(P.shape[0], 12, dtype=torch.float64)
         else:
-            s, d, (P, R) = profile_tracks(self.task, scene, positions, self.rest, cache)
+            s, d, track = profile_tracks(self.task, scene, positions, self.rest, cache)
+            P, R = track.P, track.R
         dev = rollout_from(self.model, s, d, start)
         cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
         return cp, Rp, P[start + 1:], R[start + 1:]
@@ -193,14 +195,19 @@ class QuasiStaticSurrogate:
             hook = lambda I: TabulatedField(table, I)  # noqa: E731
         else:
             hook = lambda I: field_hook(emns, I)  # noqa: E731
+        nodes, rest = list(sc.rod.grid.magnet_nodes), self.rest
+
+        def state(sol):  # the static state of a solution, its margin included
+            return static_state(sol.p[nodes], sol.R[nodes], rest, stability_margin(sol)).float()[None, None]
         sol = sc.solve(solver, field=hook(torch.zeros(emns.n_coils, dtype=torch.float64)), load_steps=4, **pose)
-        dev, st = torch.zeros(1, c.eta + 1, 12), torch.zeros(1, c.increments + 1, 12)
+        dev, st = torch.zeros(1, c.eta + 1, 12), state(sol).expand(1, c.increments + 1, -1)
         t_solve, t_net = [], []
         with torch.no_grad():
             for k in range(1, n + 1):
                 I = torch.as_tensor(scene.loads.field.currents(torch.tensor(k * self.task.delta, dtype=torch.float64)))
                 t0 = time.perf_counter()
                 sol = sc.solve(solver, field=hook(I.double()), init=sol, **pose)
+                st = torch.cat([st[:, 1:], state(sol)], 1)
                 t1 = time.perf_counter()
                 d = self.model(dev, st)
                 t2 = time.perf_counter()

@@ -25,13 +25,17 @@ __all__ = ["fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStat
 
 def fit_scales(s: torch.Tensor, d: torch.Tensor, ranges) -> dict:
     """:class:`~cmlearn.models.QuasiStaticConfig` keywords: per-coordinate scales of the deviations, the static
-    increments and the static states on the frame ranges [(variant, first, last)]."""
+    increments and the static states on the frame ranges [(variant, first, last)] (and of the margins, a 13th
+    column of ``s``, where there)."""
     S = torch.cat([s[v, a:b + 1] for v, a, b in ranges])
     D = torch.cat([d[v, a:b + 1] for v, a, b in ranges])
-    inc = torch.cat([s[v, a + 1:b + 1] - s[v, a:b] for v, a, b in ranges])
+    inc = torch.cat([s[v, a + 1:b + 1] - s[v, a:b] for v, a, b in ranges])[:, :12]
     floor = 1e-3
-    return {"dev_scale": tuple((D.std(0) + floor).tolist()), "inc_scale": tuple((inc.std(0) + floor).tolist()),
-            "state_mean": tuple(S.mean(0).tolist()), "state_scale": tuple((S.std(0) + floor).tolist())}
+    out = {"dev_scale": tuple((D.std(0) + floor).tolist()), "inc_scale": tuple((inc.std(0) + floor).tolist()),
+           "state_mean": tuple(S[:, :12].mean(0).tolist()), "state_scale": tuple((S[:, :12].std(0) + floor).tolist())}
+    if S.shape[1] > 12:
+        out["margin_scale"] = float(S[:, 12].std() + floor)
+    return out
 
 
 class DeviationWindows(Dataset):
