@@ -10,7 +10,8 @@ The step, from the deviations of frames k-eta..k and the static states of frames
 ``L`` is a linear map fitted by least squares (:meth:`QuasiStaticCorrection.fit_linear`: the rod's linear
 response, a damped lag behind the moving equilibrium) and kept fixed; ``f`` is Paper II's node network on
 these inputs (input I, the deviation history, through an LSTM; input II, the static increments and state,
-through a dense layer; concatenated; a dense head), less its output at rest (so that a rod at rest stays
+through a dense layer, with ``margin`` also the static solutions' stability margins of frames k+1-n..k+1;
+concatenated; a dense head), less its output at rest (so that a rod at rest stays
 there exactly), zero at initialisation and trained on free-running rollouts
 (:mod:`cmlearn.surrogate.quasistatic_training`). Without ``L`` the same network ran away on the held-out
 profile; without ``f`` the linear step errs more than the static rod alone (``docs/surrogates.md``, "A
