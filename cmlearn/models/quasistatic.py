@@ -106,17 +106,23 @@ class QuasiStaticCorrection(nn.Module):
             x.append(margins / self.config.margin_scale)
         return self.head(torch.cat([h, self.dense(torch.cat(x, -1))], -1)) * self.dev_scale
 
-    def forward(self, dev: Tensor, static: Tensor) -> Tensor:
-        self._check(dev, static)
+    def rest_output(self) -> Tensor:
+        """The network's output (1, 12) at rest (no deviation, no motion, the rest state and margin): what the
+        rest anchor subtracts; constant along a rollout, so compute it once and pass it to :meth:`forward`."""
         c = self.config
+        z = self.rest_state.new_zeros
+        margins = z(1, c.increments + 1) + c.rest_margin if c.margin else None
+        return self._network(z(1, c.eta + 1, N), z(1, c.increments, N), self.rest_state[None], margins)
+
+    def forward(self, dev: Tensor, static: Tensor, rest: Tensor | None = None) -> Tensor:
+        """``rest``: :meth:`rest_output` (computed here when not given)."""
+        self._check(dev, static)
         s = static[..., :N]
-        inc = s[:, 1:] - s[:, :-1]
         linear = self.regressors(dev, static) @ self.linear
-        margins = static[..., N] if c.margin else None
-        # the rest anchor: at rest (no deviation, no motion, the rest state) the step is exactly zero
-        rest = self._network(dev.new_zeros(1, *dev.shape[1:]), inc.new_zeros(1, *inc.shape[1:]), self.rest_state[None],
-                             None if margins is None else margins.new_full((1, c.increments + 1), c.rest_margin))
-        return linear + self._network(dev, inc, s[:, -1], margins) - rest
+        margins = static[..., N] if self.config.margin else None
+        # the rest anchor: at rest the step is exactly zero
+        rest = self.rest_output() if rest is None else rest
+        return linear + self._network(dev, s[:, 1:] - s[:, :-1], s[:, -1], margins) - rest
 
     def rollout(self, dev: Tensor, static: Tensor) -> Tensor:
         """Free-running deviations (B, H, 12) after the history ``dev`` (B, eta+1, 12) ending at frame k0, along
@@ -125,9 +131,9 @@ class QuasiStaticCorrection(nn.Module):
         H = static.shape[1] - n
         if H < 1:
             raise ValueError(f"static must hold more than increments = {n} frames, got {static.shape[1]}")
-        out = []
+        out, rest = [], self.rest_output()
         for h in range(H):
-            d = self(dev, static[:, h:h + n + 1])
+            d = self(dev, static[:, h:h + n + 1], rest)
             out.append(d)
             dev = torch.cat([dev[:, 1:], d[:, None]], 1)
         return torch.stack(out, 1)
