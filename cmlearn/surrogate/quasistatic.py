@@ -20,10 +20,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from cmlearn.data.generate import dataset_path, reference_rollout
+from cmlearn.data.generate import cached_dataset, dataset_path, reference_rollout
 from cmlearn.data.magnetic import magnet_frames
-from cmlearn.data.quasistatic import (TabulatedField, cached_static_track, compose, deviation, field_hook,
-                                      stability_margin, static_state, static_track)
+from cmlearn.data.quasistatic import (StaticTrack, TabulatedField, cached_static_track, compose, deviation,
+                                      field_hook, stability_margin, static_state, static_track)
 from cmlearn.data.tasks import get_task
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
@@ -33,8 +33,9 @@ from physics.lie import so3_exp
 from .checkpoint import read_blob
 from .magnetic import base_pose, field_table, orientation_errors, orientation_stats
 
-__all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "profile_tracks", "rollout_from",
-           "deviation_errors", "profile_scores", "static_tracks", "fresh_scores", "short_check", "evaluate_quasistatic"]
+__all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "scene_track", "profile_tracks",
+           "rollout_from", "deviation_errors", "profile_scores", "static_tracks", "fresh_scores", "short_check",
+           "evaluate_quasistatic"]
 
 FORMAT = "cmlearn-quasistatic/1"
 
@@ -57,15 +58,21 @@ def rest_rotations(task) -> Tensor:
                         scene.loads.field.emns, [0.0], **base_pose(scene))[1][0]
 
 
+def scene_track(task, scene, n_frames: int, cache: str | Path | None = None, currents=None) -> StaticTrack:
+    """:func:`cached_static_track` of ``scene`` at its first ``n_frames`` frames (k delta), in its eMNS and clamp,
+    along its own currents or ``currents``."""
+    times = [k * task.delta for k in range(n_frames)]
+    return cached_static_track(cache, scene.loads.field.currents if currents is None else currents,
+                               scene.loads.field.emns, times, **base_pose(scene))
+
+
 def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None,
                    currents=None):
     """Static states ``s`` (..., T, 13: with the margin) and deviations ``d`` (..., T, 12) of a scene's LGVI runs
     ``positions`` (..., T, n_tracked, 3) at frames k delta, and the :class:`StaticTrack`; the track cached at
     ``cache`` if given.
     ``currents``: a batch of profiles ``currents(t) -> (V, C)`` instead of the scene's own."""
-    times = [k * task.delta for k in range(positions.shape[-3])]
-    track = cached_static_track(cache, scene.loads.field.currents if currents is None else currents,
-                                scene.loads.field.emns, times, **base_pose(scene))
+    track = scene_track(task, scene, positions.shape[-3], cache, currents)
     c, Rl, _ = magnet_frames(task, scene.rod, positions.double())
     return static_state(track.P, track.R, R_rest, track.margin), deviation(c, Rl, track.P, track.R), track
 
@@ -100,13 +107,17 @@ def profile_scores(model: QuasiStaticCorrection, s: Tensor, d: Tensor) -> Tensor
     """Per profile the sum of the six mean absolute orientation errors (deg) of the hybrid run from rest (zero
     deviation) along static states ``s`` (V, T, 12), against the true deviations ``d``: a score on profiles no
     model trained on."""
-    dev = rollout_from(model, s, torch.zeros_like(d), 0)
-    return deviation_errors(dev, d[:, 1:]).abs().mean(1).sum((1, 2))
+    return _sum_of_means(rollout_from(model, s, torch.zeros_like(d), 0), d[:, 1:])
+
+
+def _sum_of_means(d_pred: Tensor, d_true: Tensor) -> Tensor:
+    """Per profile the sum of the six mean absolute orientation errors (deg) of deviations (V, T, 12)."""
+    return deviation_errors(d_pred, d_true).abs().mean(1).sum((1, 2))
 
 
 def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tensor) -> tuple[Tensor, Tensor]:
-    """Static states (V, T, 13) and deviations (V, T, 12) of ``dataset``'s profiles (regenerated from its seed, the static
-    track cached as ``<dataset>_static.pt`` in ``data_dir``)."""
+    """Static states (V, T, 13) and deviations (V, T, 12) of ``dataset``'s profiles (regenerated from its seed,
+    the static track cached as ``<dataset>_static.pt`` in ``data_dir``)."""
     meta = dataset["meta"]
     scene = task.base_scene()
     cache = None
@@ -120,12 +131,11 @@ def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tens
 def fresh_scores(model: QuasiStaticCorrection, task, n_variants: int, seed: int, data_dir: str | Path | None) -> dict:
     """:func:`profile_scores` of the hybrid and of the static rod alone on the random profiles 1..n-1 of a dataset
     of ``seed`` (profile 0 is the printed one): the median, mean and largest sum of six mean errors (deg)."""
-    from cmlearn.data.generate import cached_dataset
     data = cached_dataset(task, n_variants, seed, data_dir)
     s, d = static_tracks(task, data, data_dir, rest_rotations(task))
     out = {"seed": seed, "profiles": n_variants - 1, "data_hash": data["meta"]["data_hash"]}
     for name, sc in (("hybrid", profile_scores(model, s[1:], d[1:])),
-                     ("static", deviation_errors(torch.zeros_like(d[1:, 1:]), d[1:, 1:]).abs().mean(1).sum((1, 2)))):
+                     ("static", _sum_of_means(torch.zeros_like(d[1:, 1:]), d[1:, 1:]))):
         out[name] = {"median": float(sc.median()), "mean": float(sc.mean()), "max": float(sc.max()),
                      "per_profile": [round(float(x), 4) for x in sc]}
     return out
@@ -167,9 +177,7 @@ class QuasiStaticSurrogate:
             if start:
                 raise ValueError("a start after rest needs the LGVI's positions for its history")
             if track is None:
-                times = [k * self.task.delta for k in range(T)]
-                track = cached_static_track(cache, scene.loads.field.currents, scene.loads.field.emns, times,
-                                            **base_pose(scene))
+                track = scene_track(self.task, scene, T, cache)
             P, R = track.P, track.R
             s, d = static_state(P, R, self.rest, track.margin), torch.zeros(P.shape[0], 12, dtype=torch.float64)
         else:
@@ -203,13 +211,14 @@ class QuasiStaticSurrogate:
         dev, st = torch.zeros(1, c.eta + 1, 12), state(sol).expand(1, c.increments + 1, -1)
         t_solve, t_net = [], []
         with torch.no_grad():
+            rest_out = self.model.rest_output()
             for k in range(1, n + 1):
                 I = torch.as_tensor(scene.loads.field.currents(torch.tensor(k * self.task.delta, dtype=torch.float64)))
                 t0 = time.perf_counter()
                 sol = sc.solve(solver, field=hook(I.double()), init=sol, **pose)
                 st = torch.cat([st[:, 1:], state(sol)], 1)
                 t1 = time.perf_counter()
-                d = self.model(dev, st)
+                d = self.model(dev, st, rest_out)
                 t2 = time.perf_counter()
                 dev = torch.cat([dev[:, 1:], d[:, None]], 1)
                 t_solve.append(t1 - t0)
