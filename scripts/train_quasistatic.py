@@ -83,20 +83,25 @@ def main(argv=None):
     from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
-    from cmlearn.data.windows import split_ranges
     from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
     from cmlearn.surrogate.quasistatic import (QuasiStaticSurrogate, evaluate_quasistatic, fresh_scores,
                                               rest_rotations, save_quasistatic, short_check, static_tracks)
-    from cmlearn.surrogate.quasistatic_training import QuasiStaticDataModule, QuasiStaticModule, fit_scales
+    from cmlearn.surrogate.quasistatic_training import (QuasiStaticDataModule, QuasiStaticModule, fit_scales,
+                                                        training_ranges)
 
     torch.set_num_threads(a.threads)
     L.seed_everything(a.train_seed, workers=True)
     task = get_task(a.task)
     t0 = time.perf_counter()
     data = cached_dataset(task, a.variants, a.seed, a.data_dir, 1.0 if a.quick else None)
-    s, d = static_tracks(task, data, None if a.quick else a.data_dir, rest_rotations(task))
+    s, d = static_tracks(task, data, None if a.quick else a.data_dir, rest_rotations(task), truncate=True)
     t_data = time.perf_counter() - t0
-    ranges = split_ranges(s.shape[0], s.shape[1])
+    ranges = training_ranges(s)
+    ended = {v: int(torch.isfinite(s[v]).all(-1).long().cumprod(0).sum()) for v in range(s.shape[0])}
+    ended = {v: k for v, k in ended.items() if k < s.shape[1]}
+    for v, k in ended.items():
+        print(f"profile {v}: the static rod has no equilibrium at frame {k} (t = {k * task.delta:.3g} s); "
+              f"it trains on frames 0-{k - 1} only")
     cfg = QuasiStaticConfig(eta=a.eta, increments=a.increments, hidden=a.hidden, width=a.width,
                             rest_state=tuple(s[0, 0, :12].tolist()), margin=a.margin, rest_margin=float(s[0, 0, 12]),
                             **fit_scales(s, d, ranges["train"]))
@@ -123,6 +128,7 @@ def main(argv=None):
             "n_parameters": sum(p.numel() for p in model.parameters()), "linear_fit_residual": residual,
             "val_loss_start": float(start), "val_loss_best": float(ckpt.best_model_score or start),
             "data_hash": data["meta"]["data_hash"], "data_seed": a.seed, "n_variants": a.variants,
+            "static_track_ends": {str(v): k for v, k in ended.items()},
             "command": cmd.strip(), "args": asdict(a), "cmlearn_version": cmlearn.__version__,
             "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "train_wall_s": t_train,
             "data_wall_s": t_data}

@@ -195,3 +195,74 @@ def test_the_margin_option_reads_the_thirteenth_column_and_keeps_the_rest_anchor
         model(torch.zeros(1, 3, 12), rest[..., :12])
     with pytest.raises(ValueError, match="margin_scale"):
         QuasiStaticConfig(margin_scale=0.0)
+
+
+
+def test_a_warm_step_too_far_is_split_in_time_a_fold_restarts_its_problem_cold_and_a_failure_names_it():
+    import cmlearn.data.quasistatic as q
+    from physics.cosserat_shooting import StaticSolution
+    from physics.errors import SolverError
+
+    asked = []
+
+    def currents(t):
+        asked.append(float(t))
+        return torch.zeros(2, 6, dtype=torch.float64)
+
+    def solution(t, ok):
+        return StaticSolution(torch.zeros(1), torch.full((2, 1, 1), t), torch.zeros(2, 6), ok, torch.zeros(2),
+                              (~ok).double(), torch.zeros(2, 6, 6))
+
+    class Folds:  # problem 0 reaches 0.3 s past its warm start; problem 1's branch ends at 0.6 s
+        def __init__(self, cold: bool):
+            self.cold, self.cold_at = cold, []
+
+        def solve(self, solver, field, init=None, load_steps=1, raise_on_failure=True, **pose):
+            t = asked[-1]
+            if init is None:
+                self.cold_at.append(t)
+                return solution(t, torch.tensor([self.cold, self.cold]))
+            t0 = init.y[:, 0, 0]
+            return solution(t, torch.stack([t - t0[0] <= 0.3, ~((t0[1] < 0.6) & (t >= 0.6))]))
+
+    f = Folds(cold=True)
+    out = q._warm_step(f, None, None, currents, {}, solution(0.0, torch.ones(2, dtype=torch.bool)), 0.0, 1.0, 4)
+    assert out.converged.all() and out.y.flatten().tolist() == [1.0, 1.0]
+    assert f.cold_at == [0.625]  # one problem restarted cold, once, in the sub-step of 1/16 that crosses the fold
+    assert asked[:3] == [1.0, 0.5, 0.25]  # halved until within the warm start's reach
+    with pytest.raises(SolverError, match=r"from t = 0\.5625 s in 16 warm-started sub-steps nor from the unloaded "
+                                          r"rod.*time=0\.625, node=1"):
+        q._warm_step(Folds(cold=False), None, None, currents, {}, solution(0.0, torch.ones(2, dtype=torch.bool)),
+                     0.0, 1.0, 4)
+
+
+def test_truncate_ends_a_profile_whose_track_fails_and_its_training_ranges_stop_before_it(monkeypatch):
+    import cmlearn.data.quasistatic as q
+    from cmlearn.data.tasks import get_task
+    from cmlearn.surrogate.magnetic import base_pose
+    from cmlearn.surrogate.quasistatic_training import training_ranges
+    from physics.errors import SolverError
+    torch.set_num_threads(1)
+    scene = get_task("magnetic_rod").scene_by_name("magnetic_rod_heldout")
+    own = scene.loads.field.currents
+    currents = lambda t: torch.stack([own(t), 2 * own(t)])  # noqa: E731 - two profiles, one batch
+    times = [0.02 * k for k in range(6)]
+    whole = q.static_track(currents, scene.loads.field.emns, times, **base_pose(scene))
+    warm = q._warm_step
+
+    def fold(sc, solver, emns, cur, pose, sol, t_prev, t, halvings):  # profile 1 finds no equilibrium from 0.05 s
+        if t >= 0.05 and bool(cur(torch.tensor(t)).abs()[1].sum() > 0):
+            raise SolverError("no equilibrium", time=t, node=1)
+        return warm(sc, solver, emns, cur, pose, sol, t_prev, t, halvings)
+    monkeypatch.setattr(q, "_warm_step", fold)
+    with pytest.raises(SolverError, match="node=1"):
+        q.static_track(currents, scene.loads.field.emns, times, **base_pose(scene))
+    with pytest.warns(UserWarning, match=r"profile 1 has no equilibrium at t = 0\.06 s; its track ends there"):
+        cut = q.static_track(currents, scene.loads.field.emns, times, truncate=True, **base_pose(scene))
+    assert torch.equal(cut.P[0], whole.P[0]) and torch.equal(cut.margin[0], whole.margin[0])
+    assert torch.equal(cut.P[1, :3], whole.P[1, :3]) and cut.P[1, 3:].isnan().all() and cut.R[1, 3:].isnan().all()
+    s = torch.zeros(4, 11, 13)
+    s[2, 7:] = math.nan  # a training profile whose track ended at frame 7
+    s[3, 0:] = math.nan  # the validation profile's ended at once
+    r = training_ranges(s)
+    assert r["train"] == [(0, 0, 6), (1, 0, 10), (2, 0, 6)] and r["val"] == [] and r["test"] == [(0, 6, 10)]

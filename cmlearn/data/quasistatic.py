@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -26,6 +27,7 @@ import torch
 from torch import Tensor
 
 from cmlearn.io import save_torch_atomic
+from physics.errors import SolverError
 from physics.lie import so3_exp, so3_log
 
 __all__ = ["N_COORDS", "field_hook", "TabulatedField", "StaticTrack", "stability_margin", "static_track",
@@ -74,25 +76,82 @@ def stability_margin(sol) -> Tensor:
     return torch.linalg.svdvals(sol.jacobian)[..., -1]
 
 
-def static_track(currents, emns, times, n_nodes: int = 13, **pose) -> StaticTrack:
+def static_track(currents, emns, times, n_nodes: int = 13, truncate: bool = False, **pose) -> StaticTrack:
     """The static Cosserat rod at ``times`` (s) with ``currents(t) -> (C,)`` or ``(V, C)`` A (then ``...`` = V),
     each solve warm-started from the one before (:class:`StaticTrack`). ``pose``: the clamp
-    (:func:`cmlearn.surrogate.magnetic.base_pose`)."""
+    (:func:`cmlearn.surrogate.magnetic.base_pose`). Where no equilibrium is found (:func:`_warm_step`) a
+    :class:`SolverError` names the time and the profile; with ``truncate`` (a batch of profiles) that profile's
+    track ends there instead, with a warning: its frames from then on are NaN, and the batch goes on."""
     from physics.scenes_cosserat import paper2_magnetic_rod
     if len(times) == 0:
         raise ValueError("times must hold at least one time")
     sc = paper2_magnetic_rod(n_nodes)
     solver = sc.solver()
     nodes = list(sc.rod.grid.magnet_nodes)
+    live, ended = None, {}  # a profile whose track ended is solved at zero currents, so that the batch converges
+
+    def driven(t):
+        I = _currents_at(currents, t)
+        return I if live is None else I * live[:, None]
     P, R, margin, sol = [], [], [], None
     t0 = time.perf_counter()
-    for t in times:
-        I = torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
-        sol = sc.solve(solver, field=field_hook(emns, I), init=sol, load_steps=4 if sol is None else 1, **pose)
+    for k, t in enumerate(times):
+        while True:
+            try:
+                sol = (sc.solve(solver, field=field_hook(emns, driven(t)), load_steps=4, **pose) if sol is None else
+                       _warm_step(sc, solver, emns, driven, pose, sol, float(times[k - 1]), float(t), _HALVINGS))
+                break
+            except SolverError as e:
+                if not truncate or _currents_at(currents, t).dim() != 2 or e.node is None or e.node in ended:
+                    raise
+                warnings.warn(f"static track: profile {e.node} has no equilibrium at t = {float(t):.6g} s; its track "
+                              f"ends there ({e})", stacklevel=2)
+                ended[e.node] = k
+                live = torch.ones(_currents_at(currents, t).shape[0], dtype=torch.float64)
+                live[list(ended)] = 0.0
         P.append(sol.p[..., nodes, :])
         R.append(sol.R[..., nodes, :, :])
         margin.append(stability_margin(sol))
-    return StaticTrack(torch.stack(P, -3), torch.stack(R, -4), torch.stack(margin, -1), time.perf_counter() - t0)
+    out = StaticTrack(torch.stack(P, -3), torch.stack(R, -4), torch.stack(margin, -1), time.perf_counter() - t0)
+    for j, k in ended.items():
+        out.P[j, k:], out.R[j, k:], out.margin[j, k:] = math.nan, math.nan, math.nan
+    return out
+
+
+_HALVINGS = 4
+
+
+def _currents_at(currents, t: float) -> Tensor:
+    return torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
+
+
+def _warm_step(sc, solver, emns, currents, pose, sol, t_prev: float, t: float, halvings: int):
+    """The static rod at ``t`` warm-started from ``sol`` (the solution at ``t_prev``). Where the currents move too
+    far in one frame for the warm start and the solver's own load stepping, the step is split in two halves, each
+    warm-started from the one before, up to ``halvings`` times. A problem that fails even then has passed a fold
+    (its branch ended): it alone is solved again from the unloaded rod with load stepping, which lands on a branch
+    that still exists; where that fails too, a :class:`SolverError` names the time and the problem."""
+    field = field_hook(emns, _currents_at(currents, t))
+    out = sc.solve(solver, field=field, init=sol, raise_on_failure=False, **pose)
+    if bool(out.converged.all()):
+        return out
+    if halvings > 0:
+        mid = 0.5 * (t_prev + t)
+        half = _warm_step(sc, solver, emns, currents, pose, sol, t_prev, mid, halvings - 1)
+        return _warm_step(sc, solver, emns, currents, pose, half, mid, t, halvings - 1)
+    out = _where(out.converged, out, sc.solve(solver, field=field, load_steps=4, raise_on_failure=False, **pose))
+    if not bool(out.converged.all()):
+        bad = int((~out.converged).flatten().nonzero()[0])
+        raise SolverError(f"static track: no equilibrium reached from t = {t_prev:.6g} s in {2 ** _HALVINGS} "
+                          f"warm-started sub-steps nor from the unloaded rod (scaled tip residual "
+                          f"{float(out.residual.flatten()[bad]):.3e})", time=t, node=bad)
+    return out
+
+
+def _where(mask: Tensor, a, b):
+    """The static solution ``a`` where ``mask`` (...,) holds and ``b`` elsewhere (problem by problem)."""
+    pick = lambda x, y: torch.where(mask.reshape(mask.shape + (1,) * (x.dim() - mask.dim())), x, y)  # noqa: E731
+    return type(a)(a.s, *(pick(x, y) for x, y in zip(a[1:], b[1:])))
 
 
 def static_state(P: Tensor, R: Tensor, R_rest: Tensor, margin: Tensor | None = None) -> Tensor:

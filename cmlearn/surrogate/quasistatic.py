@@ -58,21 +58,23 @@ def rest_rotations(task) -> Tensor:
                         scene.loads.field.emns, [0.0], **base_pose(scene))[1][0]
 
 
-def scene_track(task, scene, n_frames: int, cache: str | Path | None = None, currents=None) -> StaticTrack:
+def scene_track(task, scene, n_frames: int, cache: str | Path | None = None, currents=None,
+                truncate: bool = False) -> StaticTrack:
     """:func:`cached_static_track` of ``scene`` at its first ``n_frames`` frames (k delta), in its eMNS and clamp,
-    along its own currents or ``currents``."""
+    along its own currents or ``currents`` (``truncate``: as :func:`static_track`'s)."""
     times = [k * task.delta for k in range(n_frames)]
     return cached_static_track(cache, scene.loads.field.currents if currents is None else currents,
-                               scene.loads.field.emns, times, **base_pose(scene))
+                               scene.loads.field.emns, times, truncate=truncate, **base_pose(scene))
 
 
 def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None,
-                   currents=None):
+                   currents=None, truncate: bool = False):
     """Static states ``s`` (..., T, 13: with the margin) and deviations ``d`` (..., T, 12) of a scene's LGVI runs
     ``positions`` (..., T, n_tracked, 3) at frames k delta, and the :class:`StaticTrack`; the track cached at
     ``cache`` if given.
-    ``currents``: a batch of profiles ``currents(t) -> (V, C)`` instead of the scene's own."""
-    track = scene_track(task, scene, positions.shape[-3], cache, currents)
+    ``currents``: a batch of profiles ``currents(t) -> (V, C)`` instead of the scene's own; ``truncate``: a
+    profile whose static track ends at a fold is NaN from there (:func:`static_track`) instead of an error."""
+    track = scene_track(task, scene, positions.shape[-3], cache, currents, truncate)
     c, Rl, _ = magnet_frames(task, scene.rod, positions.double())
     return static_state(track.P, track.R, R_rest, track.margin), deviation(c, Rl, track.P, track.R), track
 
@@ -115,9 +117,10 @@ def _sum_of_means(d_pred: Tensor, d_true: Tensor) -> Tensor:
     return deviation_errors(d_pred, d_true).abs().mean(1).sum((1, 2))
 
 
-def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tensor) -> tuple[Tensor, Tensor]:
+def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tensor,
+                  truncate: bool = False) -> tuple[Tensor, Tensor]:
     """Static states (V, T, 13) and deviations (V, T, 12) of ``dataset``'s profiles (regenerated from its seed,
-    the static track cached as ``<dataset>_static.pt`` in ``data_dir``)."""
+    the static track cached as ``<dataset>_static.pt`` in ``data_dir``; ``truncate``: as :func:`profile_tracks`')."""
     meta = dataset["meta"]
     scene = task.base_scene()
     cache = None
@@ -125,7 +128,7 @@ def static_tracks(task, dataset: dict, data_dir: str | Path | None, R_rest: Tens
         cache = dataset_path(data_dir, task.name, meta["n_variants"], meta["seed"]).with_suffix("")
         cache = cache.with_name(cache.name + "_static.pt")
     return profile_tracks(task, scene, dataset["positions"], R_rest, cache,
-                          task.variants(scene, meta["n_variants"], meta["seed"])["currents"])[:2]
+                          task.variants(scene, meta["n_variants"], meta["seed"])["currents"], truncate)[:2]
 
 
 def fresh_scores(model: QuasiStaticCorrection, task, n_variants: int, seed: int, data_dir: str | Path | None) -> dict:

@@ -20,7 +20,18 @@ from torch.utils.data import DataLoader, Dataset
 from cmlearn.data.windows import split_ranges
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 
-__all__ = ["fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
+__all__ = ["training_ranges", "fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
+
+
+def training_ranges(s: torch.Tensor) -> dict:
+    """:func:`~cmlearn.data.windows.split_ranges` of static states ``s`` (V, T, 13), each range cut before its
+    profile's first non-finite frame (a static track that ended at a fold, :func:`static_track`'s ``truncate``)."""
+    ok = torch.isfinite(s).all(-1)
+    out = {}
+    for split, ranges in split_ranges(s.shape[0], s.shape[1]).items():
+        cut = [(v, a, min(b, a - 1 + int(ok[v, a:b + 1].long().cumprod(0).sum()))) for v, a, b in ranges]
+        out[split] = [(v, a, b) for v, a, b in cut if b > a]
+    return out
 
 
 def fit_scales(s: torch.Tensor, d: torch.Tensor, ranges) -> dict:
@@ -63,7 +74,7 @@ class QuasiStaticDataModule(L.LightningDataModule):
     def __init__(self, s: torch.Tensor, d: torch.Tensor, eta: int, increments: int, horizon: int,
                  val_horizon: int, batch_size: int = 64, val_stride: int = 8, seed: int = 0):
         super().__init__()
-        ranges = split_ranges(s.shape[0], s.shape[1])
+        ranges = training_ranges(s)
         self.train_set = DeviationWindows(s, d, ranges["train"], eta, increments, horizon)
         self.val_set = DeviationWindows(s, d, ranges["val"], eta, increments, val_horizon, val_stride)
         self.batch_size, self.seed = batch_size, seed
