@@ -87,7 +87,7 @@ def main(argv=None):
     from cmlearn.surrogate.quasistatic import (QuasiStaticSurrogate, evaluate_quasistatic, fresh_scores,
                                               rest_rotations, save_quasistatic, short_check, static_tracks)
     from cmlearn.surrogate.quasistatic_training import (QuasiStaticDataModule, QuasiStaticModule, fit_scales,
-                                                        training_ranges)
+                                                        track_ends, training_ranges)
 
     torch.set_num_threads(a.threads)
     L.seed_everything(a.train_seed, workers=True)
@@ -96,9 +96,7 @@ def main(argv=None):
     data = cached_dataset(task, a.variants, a.seed, a.data_dir, 1.0 if a.quick else None)
     s, d = static_tracks(task, data, None if a.quick else a.data_dir, rest_rotations(task), truncate=True)
     t_data = time.perf_counter() - t0
-    ranges = training_ranges(s)
-    ended = {v: int(torch.isfinite(s[v]).all(-1).long().cumprod(0).sum()) for v in range(s.shape[0])}
-    ended = {v: k for v, k in ended.items() if k < s.shape[1]}
+    ranges, ended = training_ranges(s), track_ends(s)
     for v, k in ended.items():
         print(f"profile {v}: the static rod has no equilibrium at frame {k} (t = {k * task.delta:.3g} s); "
               f"it trains on frames 0-{k - 1} only")

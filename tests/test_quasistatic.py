@@ -197,7 +197,6 @@ def test_the_margin_option_reads_the_thirteenth_column_and_keeps_the_rest_anchor
         QuasiStaticConfig(margin_scale=0.0)
 
 
-
 def test_a_warm_step_too_far_is_split_in_time_a_fold_restarts_its_problem_cold_and_a_failure_names_it():
     import cmlearn.data.quasistatic as q
     from physics.cosserat_shooting import StaticSolution
@@ -240,7 +239,7 @@ def test_truncate_ends_a_profile_whose_track_fails_and_its_training_ranges_stop_
     import cmlearn.data.quasistatic as q
     from cmlearn.data.tasks import get_task
     from cmlearn.surrogate.magnetic import base_pose
-    from cmlearn.surrogate.quasistatic_training import training_ranges
+    from cmlearn.surrogate.quasistatic_training import track_ends, training_ranges
     from physics.errors import SolverError
     torch.set_num_threads(1)
     scene = get_task("magnetic_rod").scene_by_name("magnetic_rod_heldout")
@@ -265,4 +264,5 @@ def test_truncate_ends_a_profile_whose_track_fails_and_its_training_ranges_stop_
     s[2, 7:] = math.nan  # a training profile whose track ended at frame 7
     s[3, 0:] = math.nan  # the validation profile's ended at once
     r = training_ranges(s)
+    assert track_ends(s) == {2: 7, 3: 0}
     assert r["train"] == [(0, 0, 6), (1, 0, 10), (2, 0, 6)] and r["val"] == [] and r["test"] == [(0, 6, 10)]

@@ -20,16 +20,23 @@ from torch.utils.data import DataLoader, Dataset
 from cmlearn.data.windows import split_ranges
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 
-__all__ = ["training_ranges", "fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
+__all__ = ["track_ends", "training_ranges", "fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
+
+
+def track_ends(s: torch.Tensor) -> dict[int, int]:
+    """{profile: the first frame with no static solution} of static states ``s`` (V, T, 13), for the profiles whose
+    track ended at a fold (:func:`~cmlearn.data.quasistatic.static_track`'s ``truncate``: NaN from there on)."""
+    n = torch.isfinite(s).all(-1).long().cumprod(-1).sum(-1)
+    return {v: int(k) for v, k in enumerate(n) if k < s.shape[1]}
 
 
 def training_ranges(s: torch.Tensor) -> dict:
     """:func:`~cmlearn.data.windows.split_ranges` of static states ``s`` (V, T, 13), each range cut before its
-    profile's first non-finite frame (a static track that ended at a fold, :func:`static_track`'s ``truncate``)."""
-    ok = torch.isfinite(s).all(-1)
+    profile's :func:`track_ends` (a range left with no step is dropped)."""
+    ends = track_ends(s)
     out = {}
     for split, ranges in split_ranges(s.shape[0], s.shape[1]).items():
-        cut = [(v, a, min(b, a - 1 + int(ok[v, a:b + 1].long().cumprod(0).sum()))) for v, a, b in ranges]
+        cut = [(v, a, min(b, ends.get(v, b + 1) - 1)) for v, a, b in ranges]
         out[split] = [(v, a, b) for v, a, b in cut if b > a]
     return out
 
