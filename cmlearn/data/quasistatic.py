@@ -102,12 +102,13 @@ def static_track(currents, emns, times, n_nodes: int = 13, truncate: bool = Fals
                        _warm_step(sc, solver, emns, driven, pose, sol, float(times[k - 1]), float(t), _HALVINGS))
                 break
             except SolverError as e:
-                if not truncate or _currents_at(currents, t).dim() != 2 or e.node is None or e.node in ended:
+                shape = _currents_at(currents, t).shape
+                if not truncate or len(shape) != 2 or e.node is None or e.node in ended:
                     raise
                 warnings.warn(f"static track: profile {e.node} has no equilibrium at t = {float(t):.6g} s; its track "
                               f"ends there ({e})", stacklevel=2)
                 ended[e.node] = k
-                live = torch.ones(_currents_at(currents, t).shape[0], dtype=torch.float64)
+                live = torch.ones(shape[0], dtype=torch.float64)
                 live[list(ended)] = 0.0
         P.append(sol.p[..., nodes, :])
         R.append(sol.R[..., nodes, :, :])
