@@ -124,6 +124,13 @@ def test_lightning_training_lowers_the_rollout_loss_and_the_checkpoint_round_tri
     trainer.fit(module, datamodule=dm)
     after = float(module.loss(everything))  # the rollout loss over every training window
     assert after < 0.8 * before, (before, after)
+    dev, st, target = everything  # the squared loss: the mean square of the same scaled errors
+    e = (model.rollout(dev, st) - target) / model.dev_scale
+    l2 = QuasiStaticModule(model, loss="l2")
+    torch.testing.assert_close(l2.loss(everything), e.pow(2).mean())
+    torch.testing.assert_close(module.loss(everything), e.abs().mean())
+    with pytest.raises(ValueError, match="loss must be one of"):
+        QuasiStaticModule(model, loss="huber")
     path = save_quasistatic(tmp_path / "q.pt", model.eval(), {"task": "magnetic_rod", "command": "test"})
     engine = QuasiStaticSurrogate.load(path, task="magnetic_rod")
     assert torch.equal(rollout_from(engine.model, s, d, 5), rollout_from(model, s, d, 5))
@@ -266,3 +273,44 @@ def test_truncate_ends_a_profile_whose_track_fails_and_its_training_ranges_stop_
     r = training_ranges(s)
     assert track_ends(s) == {2: 7, 3: 0}
     assert r["train"] == [(0, 0, 6), (1, 0, 10), (2, 0, 6)] and r["val"] == [] and r["test"] == [(0, 6, 10)]
+
+
+def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_and_a_failed_step(monkeypatch):
+    import cmlearn.surrogate.quasistatic_stepper as qs
+    from dataclasses import replace
+    from physics.errors import SolverError
+    from physics.programs import compile_program
+    torch.set_num_threads(1)
+    engine = QuasiStaticSurrogate.load(SHIPPED, task="magnetic_rod")
+    scene = replace(engine.task.scene_by_name("magnetic_rod_heldout"), duration=0.6)
+    cp, Rp, _, Rs = engine.run(scene)
+    currents = scene.loads.field.currents
+    its = {}
+    for predictor in (True, False):
+        st = engine.stepper(scene, predictor=predictor)
+        frames, its[predictor] = [], 0
+        for k in range(1, 31):
+            frames.append(st.step(currents(torch.tensor(0.02 * k, dtype=torch.float64))))
+            its[predictor] += int(st.solution.iterations)
+        c, R = torch.stack([f[0] for f in frames]), torch.stack([f[1] for f in frames])
+        assert (c - cp).abs().max() < 1e-8 and orientation_errors(R, Rp).abs().max() < 1e-4  # m, deg
+    assert orientation_errors(Rp, Rs).abs().max() > 0.3  # the correction moves the magnets off the static rod
+    assert its[True] < its[False]  # the secant predictor saves Levenberg-Marquardt iterations
+    assert st.k == 30 and st.static.shape == (1, engine.model.config.increments + 1, 13)
+    # the frame's program traces (the compiled stepper compiles it) and equals the eager frame
+    args = (st.solution.y[st.nodes].contiguous(), torch.tensor(0.3, dtype=torch.float64), st.dev, st.static)
+    prog = compile_program(st._frame, args, direct=True)
+    for a, b in zip(prog(*args), st._frame(*args)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match=r"currents must be 6 finite numbers"):
+        st.step(torch.zeros(5))
+    with pytest.raises(ValueError, match="currents"):
+        st.step(torch.full((6,), math.nan))
+
+    def no_equilibrium(*a, **k):
+        raise SolverError("no equilibrium", time=1.0, node=0)
+    monkeypatch.setattr(qs, "_warm_step", no_equilibrium)
+    st.reset()
+    st.solver.max_iter = 1  # the first try cannot converge: the fallback runs and fails
+    with pytest.raises(SolverError, match=r"no static equilibrium at the new currents.*step=1, time=0\.02"):
+        st.step(torch.full((6,), 3.0, dtype=torch.float64))

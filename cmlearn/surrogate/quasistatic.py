@@ -22,8 +22,8 @@ from torch import Tensor
 
 from cmlearn.data.generate import cached_dataset, dataset_path, reference_rollout
 from cmlearn.data.magnetic import magnet_frames
-from cmlearn.data.quasistatic import (StaticTrack, TabulatedField, cached_static_track, compose, deviation,
-                                      field_hook, stability_margin, static_state, static_track)
+from cmlearn.data.quasistatic import (StaticTrack, cached_static_track, compose, deviation, static_state,
+                                      static_track)
 from cmlearn.data.tasks import get_task
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
@@ -31,7 +31,7 @@ from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from physics.lie import so3_exp
 
 from .checkpoint import read_blob
-from .magnetic import base_pose, field_table, orientation_errors, orientation_stats
+from .magnetic import base_pose, orientation_errors, orientation_stats
 
 __all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "scene_track", "profile_tracks",
            "rollout_from", "deviation_errors", "profile_scores", "static_tracks", "fresh_scores", "short_check",
@@ -151,7 +151,7 @@ class QuasiStaticSurrogate:
     def __init__(self, model: QuasiStaticCorrection, meta: dict):
         self.model, self.meta = model.eval(), meta
         self.task = get_task(meta["task"])
-        self._rest = None
+        self._rest, self._programs = None, {}
 
     @classmethod
     def load(cls, path: str | Path, task: str | None = None) -> "QuasiStaticSurrogate":
@@ -190,44 +190,37 @@ class QuasiStaticSurrogate:
         cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
         return cp, Rp, P[start + 1:], R[start + 1:]
 
-    def latency(self, scene, n: int = 50, compile: bool = False) -> dict:
-        """Median seconds of one real-time step at batch 1 along ``scene``'s first ``n`` steps: the static solve
-        at the next frame's currents (warm-started) and the correction, separately. ``compile``: the solver's
-        compiled fast path (:mod:`physics.cosserat_fast`) in the coils' field tabulated over the workspace
-        (:func:`~cmlearn.surrogate.magnetic.field_table`, 1e-8 of the exact field; the exact field's coil model
-        cannot be traced); its first solve compiles (about three minutes here) and is not timed."""
-        from physics.scenes_cosserat import paper2_magnetic_rod
+    def stepper(self, scene, compile: bool = False, predictor: bool = True):
+        """The real-time hybrid in ``scene``'s coils and clamp, at rest at zero current
+        (:class:`~cmlearn.surrogate.quasistatic_stepper.QuasiStaticStepper`: ``step(currents)`` -> the next frame's
+        magnets). ``compile``: the solver's compiled path in the coils' field tabulated over the workspace and the
+        rest of the step one program compiled ahead of time; the first solve compiles (about three minutes here,
+        seconds from inductor's cache)."""
+        from .quasistatic_stepper import QuasiStaticStepper
+        return QuasiStaticStepper(self.model, self.rest, scene.loads.field.emns, base_pose(scene), self.task.delta,
+                                  compile=compile, predictor=predictor, programs=self._programs)
 
-        c = self.model.config
-        sc = paper2_magnetic_rod(13)
-        solver, pose, emns = sc.solver(compile=compile), base_pose(scene), scene.loads.field.emns
-        if compile:
-            table = field_table(emns)
-            hook = lambda I: TabulatedField(table, I)  # noqa: E731
-        else:
-            hook = lambda I: field_hook(emns, I)  # noqa: E731
-        nodes, rest = list(sc.rod.grid.magnet_nodes), self.rest
-
-        def state(sol):  # the static state of a solution, its margin included
-            return static_state(sol.p[nodes], sol.R[nodes], rest, stability_margin(sol)).float()[None, None]
-        sol = sc.solve(solver, field=hook(torch.zeros(emns.n_coils, dtype=torch.float64)), load_steps=4, **pose)
-        dev, st = torch.zeros(1, c.eta + 1, 12), state(sol).expand(1, c.increments + 1, -1)
-        t_solve, t_net = [], []
-        with torch.no_grad():
-            rest_out = self.model.rest_output()
-            for k in range(1, n + 1):
-                I = torch.as_tensor(scene.loads.field.currents(torch.tensor(k * self.task.delta, dtype=torch.float64)))
-                t0 = time.perf_counter()
-                sol = sc.solve(solver, field=hook(I.double()), init=sol, **pose)
-                st = torch.cat([st[:, 1:], state(sol)], 1)
-                t1 = time.perf_counter()
-                d = self.model(dev, st, rest_out)
-                t2 = time.perf_counter()
-                dev = torch.cat([dev[:, 1:], d[:, None]], 1)
+    def latency(self, scene, n: int = 50, compile: bool = False, predictor: bool = True) -> dict:
+        """Median seconds of one real-time step of :meth:`stepper` at batch 1 along ``scene``'s first ``n`` frames:
+        the static solve at the next frame's currents and the correction, separately (the first step, which
+        compiles where ``compile``, is not timed); the mean LM iterations of a solve."""
+        st = self.stepper(scene, compile=compile, predictor=predictor)
+        currents = scene.loads.field.currents
+        t_solve, t_net, its = [], [], []
+        for k in range(1, n + 2):
+            I = currents(torch.tensor(k * self.task.delta, dtype=torch.float64))
+            t0 = time.perf_counter()
+            st.solve(I)
+            t1 = time.perf_counter()
+            st.correct()
+            t2 = time.perf_counter()
+            if k > 1:
                 t_solve.append(t1 - t0)
                 t_net.append(t2 - t1)
+                its.append(int(st.solution.iterations))
         med = lambda x: sorted(x)[len(x) // 2]  # noqa: E731
-        return {"static_solve_s": med(t_solve), "correction_s": med(t_net), "step_s": med(t_solve) + med(t_net)}
+        return {"static_solve_s": med(t_solve), "correction_s": med(t_net), "step_s": med(t_solve) + med(t_net),
+                "iterations": sum(its) / len(its)}
 
 
 def short_check(engine: QuasiStaticSurrogate, duration: float = 1.5, data_dir: str | Path | None = None) -> dict:

@@ -2,10 +2,11 @@
 
     python scripts/bench/quasistatic.py [--quick] [--task magnetic_rod] [--scene NAME] [--rounds R] [--compile]
 
-One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`) is the static Cosserat
-solve at the next frame's currents, warm-started from the step before (13 nodes, float64, eager), and the
-learned correction (float32); with ``--compile`` also with the solver's compiled path (its compile timed
-apart); the LSTM surrogate's (``checkpoints/<task>.pt``) is its closed-loop step in the
+One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`, the real-time stepper) is
+the static Cosserat solve at the next frame's currents, started from the secant predictor of the last two frames
+(13 nodes, float64, eager), and the learned correction (float32); with ``--compile`` also with the solver's compiled
+path and the correction one program compiled ahead of time (their compile timed apart), and that compiled step
+started from the last frame's solution alone (no predictor); the LSTM surrogate's (``checkpoints/<task>.pt``) is its closed-loop step in the
 tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In ``--rounds`` rounds each is
 timed once in turn, along the scene's first steps; the wall time per simulated second of each, and the LGVI's
 over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static rod's orientation
@@ -64,7 +65,9 @@ def main(argv=None):
     latency = task.hook("closed_loop_latency")
     short = replace(scene, duration=0.2)
     step_s = {"hybrid": [], "hybrid_static_solve": [], "hybrid_correction": [], "lstm": [], "lgvi_per_sim": [],
-              "hybrid_compiled": []}
+              "hybrid_compiled": [], "hybrid_compiled_solve": [], "hybrid_compiled_correction": [],
+              "hybrid_compiled_warm": []}
+    its = {}
     block = lgvi_block(scene, lgvi_steps)
     compile_s = None
     if a.compile:
@@ -73,7 +76,13 @@ def main(argv=None):
         compile_s = time.perf_counter() - t0
     for _ in range(rounds):
         if a.compile:
-            step_s["hybrid_compiled"].append(hybrid.latency(scene, n=n, compile=True)["step_s"])
+            h = hybrid.latency(scene, n=n, compile=True)
+            step_s["hybrid_compiled"].append(h["step_s"])
+            step_s["hybrid_compiled_solve"].append(h["static_solve_s"])
+            step_s["hybrid_compiled_correction"].append(h["correction_s"])
+            w = hybrid.latency(scene, n=n, compile=True, predictor=False)
+            step_s["hybrid_compiled_warm"].append(w["step_s"])
+            its.update(compiled=h["iterations"], compiled_warm=w["iterations"])
         h = hybrid.latency(scene, n=n)
         step_s["hybrid"].append(h["step_s"])
         step_s["hybrid_static_solve"].append(h["static_solve_s"])
@@ -99,6 +108,11 @@ def main(argv=None):
            "check": check, "check_wall_s": time.perf_counter() - t0}
     if a.compile:
         res.update({"hybrid_step_ms_compiled": median(step_s["hybrid_compiled"]) * 1e3,
+                    "hybrid_step_hz_compiled": 1 / median(step_s["hybrid_compiled"]),
+                    "hybrid_static_solve_ms_compiled": median(step_s["hybrid_compiled_solve"]) * 1e3,
+                    "hybrid_correction_us_compiled": median(step_s["hybrid_compiled_correction"]) * 1e6,
+                    "hybrid_step_ms_compiled_no_predictor": median(step_s["hybrid_compiled_warm"]) * 1e3,
+                    "lm_iterations_compiled": its["compiled"], "lm_iterations_compiled_no_predictor": its["compiled_warm"],
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
@@ -108,10 +122,14 @@ def main(argv=None):
           f"{res['hybrid_static_solve_ms']:.1f} ms, correction {res['hybrid_correction_us']:.0f} us), "
           f"{res['hybrid_real_time_factor']:.2f}x real time at its {d * 1e3:.0f} ms step")
     if a.compile:
-        print(f"  compiled solver (first solve {compile_s:.0f} s): hybrid step "
-              f"{res['hybrid_step_ms_compiled']:.1f} ms, "
+        print(f"  compiled (first step {compile_s:.0f} s): hybrid step "
+              f"{res['hybrid_step_ms_compiled']:.2f} ms ({res['hybrid_step_hz_compiled']:.0f} steps/s; static solve "
+              f"{res['hybrid_static_solve_ms_compiled']:.2f} ms in {its['compiled']:.2f} LM iterations, correction "
+              f"{res['hybrid_correction_us_compiled']:.0f} us), "
               f"{res['hybrid_real_time_factor_compiled']:.2f}x real time, "
-              f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second")
+              f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second; "
+              f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
+              f"({its['compiled_warm']:.2f} LM iterations)")
     print(f"  LSTM closed loop {res['lstm_closed_loop_step_hz']:.0f} steps/s; LGVI {res['lgvi_step_hz']:.0f} steps/s "
           f"({res['lgvi_wall_per_sim_s']:.2f} s per simulated second) -> hybrid "
           f"{res['speedup_per_simulated_second']:.1f}x "

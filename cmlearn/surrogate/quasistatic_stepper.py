@@ -1,0 +1,133 @@
+"""The quasi-static hybrid in real time: one frame (20 ms on the magnetic rod) per call, from the coil currents alone.
+
+:class:`QuasiStaticStepper` keeps what the next frame needs: the static rod's last solution, the static states
+of the last ``increments + 1`` frames and the deviations of the last ``eta + 1``. A step
+
+1. solves the static Cosserat rod (13 nodes, float64) at the new currents, started from the secant predictor
+   ``2 w(k) - w(k-1)`` of the base wrench (two Levenberg-Marquardt iterations where the warm start alone took
+   three, on the held-out profile); where that does not converge, from the last solution as the static track
+   does (:func:`cmlearn.data.quasistatic._warm_step`: the frame split in time, then a cold restart past a fold),
+   the currents interpolated linearly within the frame; where no equilibrium is found at all, a
+   :class:`~physics.errors.SolverError` names the step and time;
+2. computes its stability margin, the static state, the correction's deviation
+   (:class:`~cmlearn.models.QuasiStaticCorrection`, float32) and the magnets' poses; with ``compile``, one program
+   compiled ahead of time (:func:`physics.programs.compile_program`) does all of it but the margin.
+
+With ``compile`` the solver runs its compiled path in the coils' field tabulated over the workspace
+(:func:`~cmlearn.surrogate.magnetic.field_table`, 1e-8 of the exact field); otherwise the exact coil model, eager.
+Frame for frame it follows :meth:`~cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.run` from rest (which solves
+the static track offline, warm-started without the predictor): to a few 1e-6 deg here.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from cmlearn.data.quasistatic import (_HALVINGS, TabulatedField, _warm_step, compose, field_hook, stability_margin,
+                                      static_state)
+from cmlearn.models.quasistatic import QuasiStaticCorrection
+from physics.errors import SolverError
+from physics.cosserat_ode import quat_matrix
+
+__all__ = ["QuasiStaticStepper"]
+
+
+class QuasiStaticStepper:
+    """``step(currents)`` -> the magnets' centres (2, 3) m and rotations (2, 3, 3) at the next frame, for coil
+    ``currents`` (C,) A; ``reset(currents)`` puts the rod at rest (the static rod at those currents, no
+    deviation). ``model``: the correction; ``rest``: the static rod's magnet rotations at zero current (2, 3, 3);
+    ``emns``: the coils; ``pose``: the clamp (:func:`~cmlearn.surrogate.magnetic.base_pose`); ``delta``: the frame
+    (s), for error messages; ``programs``: where the compiled correction is kept for the next stepper of the same
+    ``model`` and ``rest``. The attributes ``static`` and ``solution`` hold the last frame's static rod."""
+
+    def __init__(self, model: QuasiStaticCorrection, rest: Tensor, emns, pose: dict, delta: float,
+                 compile: bool = False, predictor: bool = True, programs: dict | None = None):
+        from physics.scenes_cosserat import paper2_magnetic_rod
+
+        from .magnetic import field_table
+        self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
+        self.sc = paper2_magnetic_rod(13)
+        self.solver = self.sc.solver(compile=compile)
+        self.nodes = list(self.sc.rod.grid.magnet_nodes)
+        if compile:
+            table = field_table(emns)
+            self.field_of = lambda I: TabulatedField(table, I)  # noqa: E731
+        else:
+            self.field_of = lambda I: field_hook(emns, I)  # noqa: E731
+        self.predictor, self.compiled = predictor, compile
+        with torch.no_grad():
+            self._rest_out = model.rest_output()
+        self._programs = {} if programs is None else programs
+        self.reset()
+
+    # ---------------------------------------------------------------------------------------------- state
+    def reset(self, currents: Tensor | None = None):
+        """At rest in the static rod at ``currents`` (default zero): solved cold with load stepping."""
+        I = self._currents(currents if currents is not None else torch.zeros(self.emns.n_coils))
+        self.solution = self.sc.solve(self.solver, field=self.field_of(I), load_steps=4, **self.pose)
+        self.currents, self._prev_wrench, self.k = I, None, 0
+        c = self.model.config
+        s = self._state(self.solution)
+        self.static = s.expand(1, c.increments + 1, s.shape[-1]).clone()
+        self.dev = torch.zeros(1, c.eta + 1, 12)
+
+    def _currents(self, currents) -> Tensor:
+        I = torch.as_tensor(currents, dtype=torch.float64).detach()
+        if I.shape != (self.emns.n_coils,) or not bool(torch.isfinite(I).all()):
+            raise ValueError(f"currents must be {self.emns.n_coils} finite numbers (A), got shape {tuple(I.shape)}")
+        return I
+
+    def _state(self, sol) -> Tensor:
+        P, R = sol.p[..., self.nodes, :], sol.R[..., self.nodes, :, :]
+        return static_state(P, R, self.rest, stability_margin(sol)).float()[None, None]
+
+    # ---------------------------------------------------------------------------------------------- a step
+    def solve(self, currents) -> object:
+        """The static rod at ``currents`` (the next frame's), from the predictor or the last solution; it becomes
+        :attr:`solution` (the correction is :meth:`correct`'s)."""
+        I, sol = self._currents(currents), self.solution
+        init = sol if self._prev_wrench is None or not self.predictor else 2 * sol.base_wrench - self._prev_wrench
+        out = self.sc.solve(self.solver, field=self.field_of(I), init=init, raise_on_failure=False, **self.pose)
+        if not bool(out.converged.all()):
+            I0 = self.currents
+            try:
+                out = _warm_step(self.sc, self.solver, self.emns, lambda u: I0 + u * (I - I0), self.pose, sol, 0.0,
+                                 1.0, _HALVINGS, self.field_of)
+            except SolverError as e:
+                raise SolverError(f"quasi-static step: no static equilibrium at the new currents ({e})",
+                                  step=self.k + 1, time=(self.k + 1) * self.delta) from None
+        self._prev_wrench, self.solution, self.currents = sol.base_wrench, out, I
+        return out
+
+    @torch.no_grad()
+    def correct(self) -> tuple[Tensor, Tensor]:
+        """The correction on :attr:`solution`: the magnets' centres (2, 3) and rotations (2, 3, 3) of that frame."""
+        sol = self.solution
+        y, margin = sol.y[self.nodes].contiguous(), stability_margin(sol)
+        frame = self._frame
+        if self.compiled:
+            frame = self._programs.get("frame")
+            if frame is None:
+                from physics.programs import compile_program
+                frame = self._programs["frame"] = compile_program(self._frame, (y, margin, self.dev, self.static),
+                                                                  direct=True)
+        self.dev, self.static, c, R = frame(y, margin, self.dev, self.static)
+        self.k += 1
+        return c, R
+
+    def _frame(self, y: Tensor, margin: Tensor, dev: Tensor, static: Tensor):
+        q = y[:, 3:7]
+        P, R = y[:, 0:3], quat_matrix(q / q.norm(dim=-1, keepdim=True))
+        s = static_state(P, R, self.rest, margin).float()[None, None]
+        static = torch.cat([static[:, 1:], s], 1)
+        d = self.model(dev, static, self._rest_out)
+        c, Rm = compose(d[0], P, R)
+        return torch.cat([dev[:, 1:], d[:, None]], 1), static, c, Rm
+
+    def step(self, currents) -> tuple[Tensor, Tensor]:
+        """The next frame at coil ``currents`` (C,) A: :meth:`solve`, then :meth:`correct`."""
+        self.solve(currents)
+        return self.correct()
+
+    def __repr__(self) -> str:
+        return f"QuasiStaticStepper(frame {self.k}, delta={self.delta:g} s, compiled={self.compiled})"
