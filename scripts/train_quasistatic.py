@@ -47,6 +47,8 @@ class Args:
     train_batches: int = opt(100, "batches per epoch")
     epochs: int = opt(30, "training epochs (cosine learning-rate schedule over them)")
     lr: float = opt(1e-3, "Adam learning rate")
+    loss: str = opt("l1", "rollout loss: mean absolute or mean squared deviation error (l2 weighs the large "
+                          "errors of the snap-throughs more)", ("l1", "l2"))
     patience: int = opt(10, "epochs without a better validation loss before stopping")
     threads: int = opt(1, "torch CPU threads")
     data_dir: str = opt("data", "where datasets and static tracks are cached")
@@ -107,7 +109,7 @@ def main(argv=None):
     residual = model.fit_linear(d, s, ranges["train"])
     dm = QuasiStaticDataModule(s, d, a.eta, a.increments, a.horizon, a.val_horizon, a.batch_size, a.val_stride,
                                a.train_seed)
-    module = QuasiStaticModule(model, lr=a.lr, epochs=a.epochs)
+    module = QuasiStaticModule(model, lr=a.lr, epochs=a.epochs, loss=a.loss)
     logger = CSVLogger(a.log_dir, name=f"{task.name}_quasistatic")
     ckpt = ModelCheckpoint(dirpath=Path(logger.log_dir) / "ckpt", monitor="val_loss", save_last=True)
     trainer = L.Trainer(max_epochs=a.epochs, logger=logger, enable_progress_bar=True, deterministic=True,

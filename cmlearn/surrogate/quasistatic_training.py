@@ -7,8 +7,9 @@ and deviations (V, T, 12) (:mod:`cmlearn.data.quasistatic`). Splits are
 :func:`~cmlearn.data.windows.split_ranges`' (the printed profile's first 60 % and all other profiles but the
 last train; the last validates). The linear part is
 fitted on the training frames first (:meth:`QuasiStaticCorrection.fit_linear`); the loss is then the mean
-absolute deviation error, in units of ``dev_scale``, of free-running rollouts of ``horizon`` steps from the
-true history at random frames; validation rolls out ``val_horizon`` steps from every ``val_stride``-th frame.
+absolute (``loss="l1"``) or squared (``"l2"``: the large errors of the snap-throughs weigh more) deviation error,
+in units of ``dev_scale``, of free-running rollouts of ``horizon`` steps from the true history at random frames;
+validation rolls out ``val_horizon`` steps from every ``val_stride``-th frame.
 """
 from __future__ import annotations
 
@@ -94,14 +95,20 @@ class QuasiStaticDataModule(L.LightningDataModule):
         return DataLoader(self.val_set, batch_size=256)
 
 
+LOSSES = ("l1", "l2")
+
+
 class QuasiStaticModule(L.LightningModule):
-    def __init__(self, model: QuasiStaticCorrection, lr: float = 1e-3, epochs: int = 30):
+    def __init__(self, model: QuasiStaticCorrection, lr: float = 1e-3, epochs: int = 30, loss: str = "l1"):
         super().__init__()
-        self.model, self.lr, self.epochs = model, lr, epochs
+        if loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+        self.model, self.lr, self.epochs, self.kind = model, lr, epochs, loss
 
     def loss(self, batch) -> torch.Tensor:
         dev, s, target = batch
-        return ((self.model.rollout(dev, s) - target).abs() / self.model.dev_scale).mean()
+        e = (self.model.rollout(dev, s) - target) / self.model.dev_scale
+        return e.abs().mean() if self.kind == "l1" else e.pow(2).mean()
 
     def training_step(self, batch, _):
         loss = self.loss(batch)
