@@ -2,16 +2,16 @@
 
     python scripts/bench/quasistatic.py [--quick] [--task magnetic_rod] [--scene NAME] [--rounds R] [--compile]
 
-One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`, the real-time stepper) is
-the static Cosserat solve at the next frame's currents, started from the secant predictor of the last two frames
-(13 nodes, float64, eager), and the learned correction (float32); with ``--compile`` also with the solver's compiled
+One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`, the real-time stepper) is the
+static Cosserat solve at the next frame's currents, started from the secant predictor of the last two frames (13
+nodes, float64, eager), and the learned correction (float32); with ``--compile`` also with the solver's compiled
 path and the correction one program compiled ahead of time (their compile timed apart), and that compiled step
-started from the last frame's solution alone (no predictor); the LSTM surrogate's (``checkpoints/<task>.pt``) is its closed-loop step in the
-tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In ``--rounds`` rounds each is
-timed once in turn, along the scene's first steps; the wall time per simulated second of each, and the LGVI's
-over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static rod's orientation
-errors over the printed profile's first move (:func:`cmlearn.surrogate.quasistatic.short_check`). Batch 1,
-``--threads`` threads (default 1), CPU. Last line: one JSON object.
+started from the last frame's solution alone (no predictor); the LSTM surrogate's (``checkpoints/<task>.pt``) is
+its closed-loop step in the tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In
+``--rounds`` rounds each is timed once in turn, along the scene's first steps; the wall time per simulated second
+of each, and the LGVI's over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static
+rod's orientation errors over the printed profile's first move (:func:`cmlearn.surrogate.quasistatic.short_check`).
+Batch 1, ``--threads`` threads (default 1), CPU. Last line: one JSON object.
 """
 from __future__ import annotations
 
@@ -112,7 +112,8 @@ def main(argv=None):
                     "hybrid_static_solve_ms_compiled": median(step_s["hybrid_compiled_solve"]) * 1e3,
                     "hybrid_correction_us_compiled": median(step_s["hybrid_compiled_correction"]) * 1e6,
                     "hybrid_step_ms_compiled_no_predictor": median(step_s["hybrid_compiled_warm"]) * 1e3,
-                    "lm_iterations_compiled": its["compiled"], "lm_iterations_compiled_no_predictor": its["compiled_warm"],
+                    "lm_iterations_compiled": its["compiled"],
+                    "lm_iterations_compiled_no_predictor": its["compiled_warm"],
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
