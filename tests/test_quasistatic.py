@@ -302,6 +302,21 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
     prog = compile_program(st._frame, args, direct=True)
     for a, b in zip(prog(*args), st._frame(*args)):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    # where the predicted start fails, the frame is solved from the last solution (the static track's recovery)
+    Scene = type(st.sc)
+    solve, calls = Scene.solve, []
+
+    def first_fails(self, *a, **k):
+        out = solve(self, *a, **k)
+        calls.append(k.get("init"))
+        return out._replace(converged=torch.zeros_like(out.converged)) if len(calls) == 1 else out
+    last, I = st.solution, currents(torch.tensor(0.62, dtype=torch.float64))
+    monkeypatch.setattr(Scene, "solve", first_fails)
+    got = st.solve(I)
+    monkeypatch.setattr(Scene, "solve", solve)
+    assert len(calls) == 2 and calls[1] is last and bool(got.converged)  # the fallback's warm start: the last frame
+    ref = st.sc.solve(st.solver, field=st.field_of(I), init=last, **st.pose)
+    assert (got.p - ref.p).abs().max() < 1e-9
     with pytest.raises(ValueError, match=r"currents must be 6 numbers \(A\), got shape \(5,\)"):
         st.step(torch.zeros(5))
     with pytest.raises(ValueError, match="currents must be finite"):
