@@ -232,14 +232,14 @@ def test_a_warm_step_too_far_is_split_in_time_a_fold_restarts_its_problem_cold_a
             return solution(t, torch.stack([t - t0[0] <= 0.3, ~((t0[1] < 0.6) & (t >= 0.6))]))
 
     f = Folds(cold=True)
-    out = q._warm_step(f, None, None, currents, {}, solution(0.0, torch.ones(2, dtype=torch.bool)), 0.0, 1.0, 4)
+    start, no_field = solution(0.0, torch.ones(2, dtype=torch.bool)), lambda I: None  # noqa: E731
+    out = q._warm_step(f, None, no_field, currents, {}, start, 0.0, 1.0, 4)
     assert out.converged.all() and out.y.flatten().tolist() == [1.0, 1.0]
     assert f.cold_at == [0.625]  # one problem restarted cold, once, in the sub-step of 1/16 that crosses the fold
     assert asked[:3] == [1.0, 0.5, 0.25]  # halved until within the warm start's reach
     with pytest.raises(SolverError, match=r"from t = 0\.5625 s in 16 warm-started sub-steps nor from the unloaded "
                                           r"rod.*time=0\.625, node=1"):
-        q._warm_step(Folds(cold=False), None, None, currents, {}, solution(0.0, torch.ones(2, dtype=torch.bool)),
-                     0.0, 1.0, 4)
+        q._warm_step(Folds(cold=False), None, no_field, currents, {}, start, 0.0, 1.0, 4)
 
 
 def test_truncate_ends_a_profile_whose_track_fails_and_its_training_ranges_stop_before_it(monkeypatch):
@@ -256,10 +256,10 @@ def test_truncate_ends_a_profile_whose_track_fails_and_its_training_ranges_stop_
     whole = q.static_track(currents, scene.loads.field.emns, times, **base_pose(scene))
     warm = q._warm_step
 
-    def fold(sc, solver, emns, cur, pose, sol, t_prev, t, halvings):  # profile 1 finds no equilibrium from 0.05 s
+    def fold(sc, solver, field_of, cur, pose, sol, t_prev, t, halvings):  # profile 1 finds no equilibrium from 0.05 s
         if t >= 0.05 and bool(cur(torch.tensor(t)).abs()[1].sum() > 0):
             raise SolverError("no equilibrium", time=t, node=1)
-        return warm(sc, solver, emns, cur, pose, sol, t_prev, t, halvings)
+        return warm(sc, solver, field_of, cur, pose, sol, t_prev, t, halvings)
     monkeypatch.setattr(q, "_warm_step", fold)
     with pytest.raises(SolverError, match="node=1"):
         q.static_track(currents, scene.loads.field.emns, times, **base_pose(scene))

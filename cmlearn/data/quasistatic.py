@@ -99,7 +99,8 @@ def static_track(currents, emns, times, n_nodes: int = 13, truncate: bool = Fals
         while True:
             try:
                 sol = (sc.solve(solver, field=field_hook(emns, driven(t)), load_steps=4, **pose) if sol is None else
-                       _warm_step(sc, solver, emns, driven, pose, sol, float(times[k - 1]), float(t), _HALVINGS))
+                       _warm_step(sc, solver, lambda I: field_hook(emns, I), driven, pose, sol, float(times[k - 1]),
+                                  float(t), _HALVINGS))
                 break
             except SolverError as e:
                 shape = _currents_at(currents, t).shape
@@ -126,22 +127,21 @@ def _currents_at(currents, t: float) -> Tensor:
     return torch.as_tensor(currents(torch.tensor(float(t), dtype=torch.float64)), dtype=torch.float64)
 
 
-def _warm_step(sc, solver, emns, currents, pose, sol, t_prev: float, t: float, halvings: int, field_of=None):
+def _warm_step(sc, solver, field_of, currents, pose, sol, t_prev: float, t: float, halvings: int):
     """The static rod at ``t`` warm-started from ``sol`` (the solution at ``t_prev``). Where the currents move too
     far in one frame for the warm start and the solver's own load stepping, the step is split in two halves, each
     warm-started from the one before, up to ``halvings`` times. A problem that fails even then has passed a fold
     (its branch ended): it alone is solved again from the unloaded rod with load stepping, which lands on a branch
     that still exists; where that fails too, a :class:`SolverError` names the time and the problem. ``field_of(I)``:
-    the field hook of currents ``I`` (default :func:`field_hook` of ``emns``)."""
-    field_of = field_of or (lambda I: field_hook(emns, I))
+    the field hook of currents ``I`` (e.g. :func:`field_hook` of the eMNS)."""
     field = field_of(_currents_at(currents, t))
     out = sc.solve(solver, field=field, init=sol, raise_on_failure=False, **pose)
     if bool(out.converged.all()):
         return out
     if halvings > 0:
         mid = 0.5 * (t_prev + t)
-        half = _warm_step(sc, solver, emns, currents, pose, sol, t_prev, mid, halvings - 1, field_of)
-        return _warm_step(sc, solver, emns, currents, pose, half, mid, t, halvings - 1, field_of)
+        half = _warm_step(sc, solver, field_of, currents, pose, sol, t_prev, mid, halvings - 1)
+        return _warm_step(sc, solver, field_of, currents, pose, half, mid, t, halvings - 1)
     out = _where(out.converged, out, sc.solve(solver, field=field, load_steps=4, raise_on_failure=False, **pose))
     if not bool(out.converged.all()):
         bad = int((~out.converged).flatten().nonzero()[0])

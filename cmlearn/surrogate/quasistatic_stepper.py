@@ -95,8 +95,8 @@ class QuasiStaticStepper:
         if not bool(out.converged.all()):
             I0 = self.currents
             try:
-                out = _warm_step(self.sc, self.solver, self.emns, lambda u: I0 + u * (I - I0), self.pose, sol, 0.0,
-                                 1.0, _HALVINGS, self.field_of)
+                out = _warm_step(self.sc, self.solver, self.field_of, lambda u: I0 + u * (I - I0), self.pose, sol,
+                                 0.0, 1.0, _HALVINGS)
             except SolverError as e:
                 raise SolverError(f"quasi-static step: no static equilibrium at the new currents ({e})",
                                   step=self.k + 1, time=(self.k + 1) * self.delta) from None
