@@ -419,10 +419,11 @@ _STARTS: dict = {}
 
 
 def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: float, live: Tensor, step_tab,
-            compiled: bool = True, flat=None):
+            compiled: bool = True, flat=None, max_iter: int | None = None):
     """:meth:`CosseratSolver._lm` on the compiled iteration program; ``None`` where the field hook
     cannot be traced (the caller then takes the ``torch.compile`` path). ``compiled=False`` runs the
-    same program eagerly (tests); ``flat``: :func:`flatten_field` of ``field`` when already known."""
+    same program eagerly (tests); ``flat``: :func:`flatten_field` of ``field`` when already known;
+    ``max_iter``: the iterations allowed (default the solver's)."""
     from .cosserat_shooting import _spd_unrolled
     flat = flatten_field(field) if flat is None else flat
     if flat is None:
@@ -438,7 +439,7 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     xf = x.reshape(N, 6).contiguous()
     itf, livef = its.reshape(N).contiguous(), live.reshape(N).contiguous()
     # (no input passed twice: a trace would tie the two)
-    lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, itf + solver.max_iter, tol, livef, bp, bq]
+    lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, itf + (solver.max_iter if max_iter is None else max_iter), tol, livef, bp, bq]
     key = (compiled, lanes, tabs.magnet_rows, tabs.record_base, solver.scales, fkey, float(t), float(solver.fd_step),
            x.dtype, str(x.device), shp, tuple(rows.shape), _sig((bp, bq, *rest)), its.dtype)
     if key in _FAILED:

@@ -220,14 +220,17 @@ class CosseratSolver:
         cols, (r, Y) = torch.func.vmap(lambda v: torch.func.jvp(r_of, (x,), (v,), has_aux=True)[1:])(basis)
         return r[0], cols.movedim(0, -1), Y[0]
 
-    def _lm(self, x, prm, loads, field, t, its, lam0, live, flat=None):
-        """LM from ``x`` (batch-shaped); returns x, r, J, Y, rn and the updated iteration counts."""
+    def _lm(self, x, prm, loads, field, t, its, lam0, live, flat=None, max_iter=None):
+        """LM from ``x`` (batch-shaped), at most ``max_iter`` iterations (default the solver's); returns x, r, J,
+        Y, rn and the updated iteration counts."""
+        max_iter = self.max_iter if max_iter is None else max_iter
         evaluate = self._evaluate
         if self.compile:
             if self._step_key is not prm:  # the parameter table is reused while params are unchanged
                 self._step_key, self._step_tab = prm, step_table(prm, self.rod.grid)
             if self.steps_per_call == 1:
-                out = fast_lm(self, x, prm, loads, field, t, its, lam0, live, self._step_tab, flat=flat)
+                out = fast_lm(self, x, prm, loads, field, t, its, lam0, live, self._step_tab, flat=flat,
+                              max_iter=max_iter)
                 if out is not None:
                     return out
             tabs = lane_tables(prm, self.rod.grid, loads, self._step_tab)
@@ -242,7 +245,7 @@ class CosseratSolver:
         rn = torch.full(shp, math.inf, **kw)
         lam = torch.full(shp, lam0, **kw)
         act = live.clone()
-        budget = its + self.max_iter
+        budget = its + max_iter
         tol = torch.tensor(self.tol, **kw)
         first = True
         while True:
@@ -257,13 +260,14 @@ class CosseratSolver:
     # ------------------------------------------------------------------ solve
     def solve(self, *, field=None, t: float = 0.0, init=None, load_steps: int = 1, max_load_steps: int = 64,
               params: CosseratParams | None = None, raise_on_failure: bool = True, differentiable: bool | None = None,
-              **load_kw) -> StaticSolution:
+              max_iter: int | None = None, **load_kw) -> StaticSolution:
         """Solve for the loads given as keywords of :meth:`make_loads` (or ``loads=StaticLoads``), the
         magnet ``field`` hook and ``params`` (default the rod's). ``init``: a previous
         :class:`StaticSolution` or base wrench (..., 6) in SI (warm start; default the unloaded 0).
         ``load_steps`` > 1 solves at ``k/load_steps`` of every load in turn (continuation); problems
         that still fail are solved again from ``init`` with four times as many load steps, up to
-        ``max_load_steps`` (set it to ``load_steps`` to switch that off). ``differentiable`` (default:
+        ``max_load_steps`` (set it to ``load_steps`` to switch that off). ``max_iter``: the LM iterations
+        allowed per load step in this call (default the solver's). ``differentiable`` (default:
         whenever an input requires grad) adds the implicit-function correction that makes the result
         differentiable."""
         loads = load_kw.pop("loads", None)
@@ -271,7 +275,8 @@ class CosseratSolver:
         if field is not None and not callable(field) and not hasattr(field, "wrench"):
             raise TypeError("field must be callable as field(t, positions) -> B | (B, dB) or have "
                             "wrench(t, positions, moments)")
-        for nm, v in (("load_steps", load_steps), ("max_load_steps", max_load_steps)):
+        max_iter = self.max_iter if max_iter is None else max_iter
+        for nm, v in (("load_steps", load_steps), ("max_load_steps", max_load_steps), ("max_iter", max_iter)):
             if int(v) != v or v < 1:
                 raise ValueError(f"{nm} must be an integer >= 1, got {v!r}")
         prm = self.params if params is None else params
@@ -301,7 +306,8 @@ class CosseratSolver:
             for k in range(1, steps + 1):
                 lk = loads_d if k == steps else loads_d.scaled(k / steps)
                 x, r, J, Y, rn, its = self._lm(x, prm_d, lk, field, t, its,
-                                               _LAM_COLD if (init is None and k == 1) else _LAM_WARM, live, flat)
+                                               _LAM_COLD if (init is None and k == 1) else _LAM_WARM, live, flat,
+                                               max_iter)
             return x, r, J, Y, rn, its
 
         with torch.no_grad():

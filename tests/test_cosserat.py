@@ -165,9 +165,9 @@ def test_fast_path_programs_match_the_reference_shooting(monkeypatch):
     near = sc.solve(solver, field=LinearField(B * 0.99, Gm))
     ref = sc.solve(solver, field=LinearField(B, Gm), init=near)
 
-    def fast(self, x, prm, loads, field, t, its, lam0, live, flat=None):
+    def fast(self, x, prm, loads, field, t, its, lam0, live, flat=None, max_iter=None):
         return fast_lm(self, x, prm, loads, field, t, its, lam0, live, step_table(prm, self.rod.grid), compiled=False,
-                       flat=flat)
+                       flat=flat, max_iter=max_iter)
 
     monkeypatch.setattr(CosseratSolver, "_lm", fast)
     for lanes_below, max_rows in ((1, 16), (8, 16), (8, 5)):  # component layout, lanes, the shot in 3 programs
@@ -176,6 +176,9 @@ def test_fast_path_programs_match_the_reference_shooting(monkeypatch):
         out = sc.solve(solver, field=LinearField(B, Gm), init=near)
         assert out.iterations.tolist() == ref.iterations.tolist() and bool(out.converged.all())
         assert (out.y - ref.y).abs().max() < 1e-14 and (out.jacobian - ref.jacobian).abs().max() < 1e-12
+    capped = sc.solve(solver, field=LinearField(B, Gm), init=near, max_iter=2, max_load_steps=1,
+                      raise_on_failure=False)  # a per-call cap on the iterations binds the programs too (ref: 3)
+    assert capped.iterations.tolist() == [2, 2] and not bool(capped.converged.any())
     assert flatten_field(lambda t, x: x) is None  # a plain function: the torch.compile path instead
 
 
@@ -240,6 +243,13 @@ def test_warm_start_continuation_and_failure_flags():
     ok = CosseratSolver(rod).solve(field=UniformField(big[:, None, :]))  # automatic continuation for the hard one
     assert bool(ok.converged.all()) and float(tip_angle(ok, (1, 2))[1]) > math.radians(70)
     assert int(ok.iterations[1]) > int(ok.iterations[0])
+    # a per-call cap on the iterations of each load step; the solver's own budget stays as it was
+    capped = CosseratSolver(rod).solve(field=UniformField(big[:, None, :]), load_steps=4, max_load_steps=4, max_iter=2,
+                                       raise_on_failure=False)
+    assert int(capped.iterations[1]) <= 4 * 2 and not bool(capped.converged[1])
+    with pytest.raises(ValueError, match="max_iter must be an integer >= 1"):
+        solver.solve(field=UniformField(B), gravity=G, max_iter=0)
+    assert solver.max_iter == 30
 
 
 def test_float32_close_to_float64():
