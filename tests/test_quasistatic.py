@@ -291,7 +291,7 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
         frames, its[predictor] = [], 0
         for k in range(1, 31):
             frames.append(st.step(currents(torch.tensor(0.02 * k, dtype=torch.float64))))
-            its[predictor] += int(st.solution.iterations)
+            its[predictor] += st.iterations
         c, R = torch.stack([f[0] for f in frames]), torch.stack([f[1] for f in frames])
         assert (c - cp).abs().max() < 1e-8 and orientation_errors(R, Rp).abs().max() < 1e-4  # m, deg
     assert orientation_errors(Rp, Rs).abs().max() > 0.3  # the correction moves the magnets off the static rod
@@ -302,19 +302,20 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
     prog = compile_program(st._frame, args, direct=True)
     for a, b in zip(prog(*args), st._frame(*args)):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-    # where the predicted start fails, the frame is solved from the last solution (the static track's recovery)
+    # where every try from the predicted start fails (the stages, then the solver's escalation), the frame is
+    # solved from the last solution (the static track's recovery)
     Scene = type(st.sc)
-    solve, calls = Scene.solve, []
+    solve, calls, tries = Scene.solve, [], len(qs.STAGES) + 1
 
-    def first_fails(self, *a, **k):
+    def first_fail(self, *a, **k):
         out = solve(self, *a, **k)
         calls.append(k.get("init"))
-        return out._replace(converged=torch.zeros_like(out.converged)) if len(calls) == 1 else out
+        return out._replace(converged=torch.zeros_like(out.converged)) if len(calls) <= tries else out
     last, I = st.solution, currents(torch.tensor(0.62, dtype=torch.float64))
-    monkeypatch.setattr(Scene, "solve", first_fails)
+    monkeypatch.setattr(Scene, "solve", first_fail)
     got = st.solve(I)
     monkeypatch.setattr(Scene, "solve", solve)
-    assert len(calls) == 2 and calls[1] is last and bool(got.converged)  # the fallback's warm start: the last frame
+    assert len(calls) == tries + 1 and calls[tries] is last and bool(got.converged)  # the fallback: the last frame
     ref = st.sc.solve(st.solver, field=st.field_of(I), init=last, **st.pose)
     assert (got.p - ref.p).abs().max() < 1e-9
     with pytest.raises(ValueError, match=r"currents must be 6 numbers \(A\), got shape \(5,\)"):
@@ -326,6 +327,30 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
         raise SolverError("no equilibrium", time=1.0, node=0)
     monkeypatch.setattr(qs, "_warm_step", no_equilibrium)
     st.reset()
-    st.solver.max_iter = 1  # the first try cannot converge: the fallback runs and fails
+    st.solver.max_iter, st.stages = 1, ((1, 1),)  # no try can converge: the fallback runs and fails
     with pytest.raises(SolverError, match=r"no static equilibrium at the new currents.*step=1, time=0\.02"):
         st.step(torch.full((6,), 3.0, dtype=torch.float64))
+
+
+def test_the_staged_solve_crosses_a_snap_through_onto_the_branch_the_escalation_finds():
+    """The held-out profile's first snap-through (frame 108): the predictor's first try (10 iterations) fails, the
+    loads stepped up in 12 steps land on the equilibrium that the solver's own escalation (4, 16, 64 load steps of
+    up to 50 iterations) finds, on the new branch (the magnets turned)."""
+    from dataclasses import replace
+    from cmlearn.surrogate.quasistatic_stepper import STAGES
+    torch.set_num_threads(1)
+    engine = QuasiStaticSurrogate.load(SHIPPED, task="magnetic_rod")
+    scene = replace(engine.task.scene_by_name("magnetic_rod_heldout"), duration=2.2)
+    currents = lambda k: scene.loads.field.currents(torch.tensor(0.02 * k, dtype=torch.float64))  # noqa: E731
+    st = engine.stepper(scene)
+    for k in range(1, 108):  # the static rod alone up to the frame before the fold
+        st.solve(currents(k))
+    before = st.solution, st._prev_wrench, st.currents
+    staged, its = st.solve(currents(108)), st.iterations
+    st.solution, st._prev_wrench, st.currents = before
+    st.stages = ()
+    escalated = st.solve(currents(108))
+    assert STAGES[0][1] < its <= STAGES[0][1] + STAGES[1][0] * STAGES[1][1]  # the first try failed, the second held
+    assert bool(staged.converged) and (staged.p - escalated.p).abs().max() < 1e-9
+    turned = (staged.R[st.nodes] - before[0].R[st.nodes]).abs().max()
+    assert turned > 0.1 and (escalated.R - staged.R).abs().max() < 1e-9

@@ -190,22 +190,24 @@ class QuasiStaticSurrogate:
         cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
         return cp, Rp, P[start + 1:], R[start + 1:]
 
-    def stepper(self, scene, compile: bool = False, predictor: bool = True):
+    def stepper(self, scene, compile: bool = False, predictor: bool = True, **kw):
         """The real-time hybrid in ``scene``'s coils and clamp, at rest at zero current
         (:class:`~cmlearn.surrogate.quasistatic_stepper.QuasiStaticStepper`: ``step(currents)`` -> the next frame's
-        magnets). ``compile``: the solver's compiled path in the coils' field tabulated over the workspace and the
-        rest of the step one program compiled ahead of time; the first solve compiles (about three minutes here,
-        seconds from inductor's cache)."""
+        magnets; keywords go to it). ``compile``: the solver's compiled path in the coils' field tabulated over the
+        workspace and the rest of the step one program compiled ahead of time; the first solve compiles (about three
+        minutes here, seconds from inductor's cache)."""
         from .quasistatic_stepper import QuasiStaticStepper
         return QuasiStaticStepper(self.model, self.rest, scene.loads.field.emns, base_pose(scene), self.task.delta,
-                                  compile=compile, predictor=predictor, programs=self._programs)
+                                  compile=compile, predictor=predictor, programs=self._programs, **kw)
 
-    def latency(self, scene, n: int = 50, compile: bool = False, predictor: bool = True) -> dict:
-        """Median seconds of one real-time step of :meth:`stepper` at batch 1 along ``scene``'s first ``n`` frames:
-        the static solve at the next frame's currents and the correction, separately (the first step, which
-        compiles where ``compile``, is not timed); the mean LM iterations of a solve."""
-        st = self.stepper(scene, compile=compile, predictor=predictor)
+    def latency(self, scene, n: int | None = 50, compile: bool = False, predictor: bool = True, **kw) -> dict:
+        """Seconds of one real-time step of :meth:`stepper` (keywords go to it) at batch 1 along ``scene``'s first
+        ``n`` frames (``None``: all of them): the medians of the static solve at the next frame's currents and of
+        the correction (the first step, which compiles where ``compile``, is not timed), the slowest step, the
+        steps slower than the frame and the mean LM iterations of a solve."""
+        st = self.stepper(scene, compile=compile, predictor=predictor, **kw)
         currents = scene.loads.field.currents
+        n = int(round(scene.duration / self.task.delta)) if n is None else n
         t_solve, t_net, its = [], [], []
         for k in range(1, n + 2):
             I = currents(torch.tensor(k * self.task.delta, dtype=torch.float64))
@@ -217,10 +219,12 @@ class QuasiStaticSurrogate:
             if k > 1:
                 t_solve.append(t1 - t0)
                 t_net.append(t2 - t1)
-                its.append(int(st.solution.iterations))
+                its.append(st.iterations)
         med = lambda x: sorted(x)[len(x) // 2]  # noqa: E731
+        steps = [a + b for a, b in zip(t_solve, t_net)]
         return {"static_solve_s": med(t_solve), "correction_s": med(t_net), "step_s": med(t_solve) + med(t_net),
-                "iterations": sum(its) / len(its)}
+                "max_step_s": max(steps), "over_frame": sum(x > self.task.delta for x in steps), "steps": len(steps),
+                "iterations": sum(its) / len(its), "max_iterations": max(its)}
 
 
 def short_check(engine: QuasiStaticSurrogate, duration: float = 1.5, data_dir: str | Path | None = None) -> dict:
