@@ -6,7 +6,9 @@ One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.laten
 static Cosserat solve at the next frame's currents, started from the secant predictor of the last two frames (13
 nodes, float64, eager), and the learned correction (float32); with ``--compile`` also with the solver's compiled
 path and the correction one program compiled ahead of time (their compile timed apart), and that compiled step
-started from the last frame's solution alone (no predictor); the LSTM surrogate's (``checkpoints/<task>.pt``) is
+started from the last frame's solution alone (no predictor), and the compiled step along the whole scene, whose
+slowest steps are the snap-throughs: with the staged solve (:data:`~cmlearn.surrogate.quasistatic_stepper.STAGES`)
+and with the solver's own escalation of load steps instead; the LSTM surrogate's (``checkpoints/<task>.pt``) is
 its closed-loop step in the tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In
 ``--rounds`` rounds each is timed once in turn, along the scene's first steps; the wall time per simulated second
 of each, and the LGVI's over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static
@@ -27,6 +29,7 @@ from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, short_check
+from cmlearn.surrogate.quasistatic_stepper import STAGES
 
 
 def lgvi_block(scene, steps: int):
@@ -89,6 +92,10 @@ def main(argv=None):
         step_s["hybrid_correction"].append(h["correction_s"])
         step_s["lstm"].append(latency(lstm, short, n=n))
         step_s["lgvi_per_sim"].append(block())
+    whole = {}
+    if a.compile:  # every frame of the scene, folds included: the slowest step against the frame
+        for label, stages in (("staged", STAGES), ("escalation", ())):
+            whole[label] = hybrid.latency(scene, n=None, compile=True, stages=stages)
     d = task.delta
     ratios = [lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid"])]
     t0 = time.perf_counter()
@@ -117,7 +124,11 @@ def main(argv=None):
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
-                    "compile_s": compile_s})
+                    "compile_s": compile_s, "scene_steps": whole["staged"]["steps"]})
+        for label, w in whole.items():
+            res.update({f"slowest_step_ms_{label}": w["max_step_s"] * 1e3, f"steps_over_frame_{label}": w["over_frame"],
+                        f"max_lm_iterations_{label}": w["max_iterations"],
+                        f"lm_iterations_whole_scene_{label}": w["iterations"]})
     print(f"{task.name} ({scene.name}), batch 1, {a.threads} thread(s), {rounds} rounds: hybrid step "
           f"{res['hybrid_step_ms']:.1f} ms ({res['hybrid_step_hz']:.0f} steps/s; static solve "
           f"{res['hybrid_static_solve_ms']:.1f} ms, correction {res['hybrid_correction_us']:.0f} us), "
@@ -131,6 +142,12 @@ def main(argv=None):
               f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second; "
               f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
               f"({its['compiled_warm']:.2f} LM iterations)")
+    if a.compile:
+        w, e = whole["staged"], whole["escalation"]
+        print(f"  the whole scene compiled ({w['steps']} steps): slowest step {w['max_step_s'] * 1e3:.1f} ms "
+              f"({w['max_iterations']} LM iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
+              f"with the solver's escalation instead of the stages {e['max_step_s'] * 1e3:.1f} ms "
+              f"({e['max_iterations']} iterations), {e['over_frame']} over")
     print(f"  LSTM closed loop {res['lstm_closed_loop_step_hz']:.0f} steps/s; LGVI {res['lgvi_step_hz']:.0f} steps/s "
           f"({res['lgvi_wall_per_sim_s']:.2f} s per simulated second) -> hybrid "
           f"{res['speedup_per_simulated_second']:.1f}x "
