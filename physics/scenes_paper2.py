@@ -125,27 +125,40 @@ _ELLIPSE_ROD = Rod(_ELLIPSE_N * _ELLIPSE_L, _SECTION, _VERY_SOFT, n_elements=_EL
 _ELLIPSE_DT, _ELLIPSE_DURATION = 1e-3, 50.0  # printed: max. stable step 1e-3 s, 50001 samples
 
 
-def _ellipse_scene(name: str, title: str, width: float, height: float, description: str, thesis: dict) -> Scene:
+def _mesh(n_elements: int, printed: int, even: bool = False) -> dict:
+    """``chosen`` entries of a scene built on another mesh than the printed one (mesh studies); checks it."""
+    if not isinstance(n_elements, int) or n_elements < 2 or (even and n_elements % 2):
+        raise ValueError(f"n_elements must be an {'even ' if even else ''}integer >= 2, got {n_elements!r}")
+    return {} if n_elements == printed else {"n_elements": n_elements, "printed_n_elements": printed}
+
+
+def _ellipse_scene(name: str, title: str, width: float, height: float, description: str, thesis: dict,
+                   n_elements: int) -> Scene:
     def build(rod_: Rod) -> dict:
         p, R, _ = ellipse_loop(rod_.N, width, height, element_length=rod_.lengths[0])
         return {"p": p, "R": R}
 
-    scale = _ELLIPSE_L / ellipse_loop(_ELLIPSE_N, width, height)[2]
+    mesh = _mesh(n_elements, _ELLIPSE_N, even=True)
+    rod = _ELLIPSE_ROD if not mesh else Rod(_ELLIPSE_ROD.length, _SECTION, _VERY_SOFT, n_elements=n_elements)
+    scale = float(rod.lengths[0]) / ellipse_loop(n_elements, width, height)[2]
+    mid = n_elements // 2
     return Scene(
-        name=name, title=title, description=description, rod=_ELLIPSE_ROD, bc="clamped-clamped", dt=_ELLIPSE_DT,
-        duration=_ELLIPSE_DURATION, initial=build, nodes_of_interest=(29, 28, 30),
-        node_labels=("node 30 (thesis)", "node 29", "node 31"),
+        name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=_ELLIPSE_DT,
+        duration=_ELLIPSE_DURATION, initial=build, nodes_of_interest=(mid, mid - 1, mid + 1),
+        node_labels=(f"node {mid + 1} (thesis: 30)", f"node {mid}", f"node {mid + 2}") if mesh else
+        ("node 30 (thesis)", "node 29", "node 31"),
         thesis=dict(thesis, width=width, height=height, n_nodes=59, node_of_interest_1based=30, dt=_ELLIPSE_DT,
                     duration=_ELLIPSE_DURATION, samples=50001, dt_max_thesis_model=1e-3),
         chosen={"radius": 0.01, "E": _VERY_SOFT.E, "density": _VERY_SOFT.density, "nu": _VERY_SOFT.nu,
                 "material": "Simulation III's rod, the printed rod stable at the printed 1e-3 s step",
                 "length": _ELLIPSE_ROD.length, "perimeter": ellipse_perimeter(width, height),
                 "ellipse_scale": scale, "nodes": "equal elements with zero axial strain, closing the loop",
-                "end_frames": "tangent frame at the origin (E3 = +x, E2 = +z) for both ends"},
+                "end_frames": "tangent frame at the origin (E3 = +x, E2 = +z) for both ends", **mesh},
     )
 
 
-def ellipse() -> Scene:
+def ellipse(n_elements: int = _ELLIPSE_N) -> Scene:
+    """``n_elements`` (even; default the printed 58): the same rod on another mesh, for mesh studies."""
     return _ellipse_scene(
         "ellipse", "Paper II sim. I: closed loop released from an ellipse 0.2 m x 0.6 m", 0.2, 0.6,
         "Paper II Simulation I: a closed loop (58 elements, 59 nodes) bent into an ellipse 0.2 m wide (x) "
@@ -161,10 +174,11 @@ def ellipse() -> Scene:
         "(the printed 50001 samples); the loop swings about 4.5 times. No gravity, no damping.",
         {"end_orientations_deg": {"first": ("R_y", 18.07), "last": ("R_y", 341.92)},
          "node_of_interest_xy": (-0.01, -0.59),
-         "rnn_errors": {"x": (1.57e-3, 0.27e-3), "y": (2.27e-3, 0.46e-3), "z": (0.23e-3, 0.06e-3)}})
+         "rnn_errors": {"x": (1.57e-3, 0.27e-3), "y": (2.27e-3, 0.46e-3), "z": (0.23e-3, 0.06e-3)}}, n_elements)
 
 
-def ellipse_horizontal() -> Scene:
+def ellipse_horizontal(n_elements: int = _ELLIPSE_N) -> Scene:
+    """``n_elements``: as :func:`ellipse`'s."""
     return _ellipse_scene(
         "ellipse_horizontal", "Paper II sim. I held-out: closed loop released from an ellipse 0.6 m x 0.2 m",
         0.6, 0.2,
@@ -175,12 +189,14 @@ def ellipse_horizontal() -> Scene:
         "at (0, -0.2). dt 1e-3 s, 50 s. No gravity, no damping.",
         {"end_orientations_deg": {"first": ("identity", 0.0), "last": ("identity", 0.0)},
          "node_of_interest_xy": (-0.01, -0.19),
-         "rnn_errors": {"x": (26.33e-3, 3.37e-3), "y": (21.71e-3, 3.70e-3), "z": (4.92e-3, 4.22e-3)}})
+         "rnn_errors": {"x": (26.33e-3, 3.37e-3), "y": (21.71e-3, 3.70e-3), "z": (4.92e-3, 4.22e-3)}}, n_elements)
 
 
 # ------------------------------------------------------------------------------- Simulation II
-def square_tracking() -> Scene:
-    rod = Rod(0.55, _SECTION, _SOFT, n_elements=8)
+def square_tracking(n_elements: int = 8) -> Scene:
+    """``n_elements`` (default the printed 8): the same rod on another mesh, for mesh studies."""
+    mesh = _mesh(n_elements, 8)
+    rod = Rod(0.55, _SECTION, _SOFT, n_elements=n_elements)
     half, durations = 0.05, (2.0, 3.0, 3.0, 3.0, 3.0, 2.0)
     force = SquareTipForce(rod, half, durations)
     return Scene(
@@ -195,12 +211,12 @@ def square_tracking() -> Scene:
             "m = 33/140 of the rod mass (peak force about 0.1 N). dt 1e-4 s (dt/dt_max 0.62). No gravity, "
             "no damping."),
         rod=rod, bc="clamped-free", dt=1e-4, duration=16.0, loads=Loads(force=force),
-        nodes_of_interest=(8, 7), node_labels=("tip", "node 8"),
+        nodes_of_interest=(n_elements, n_elements - 1), node_labels=("tip", f"node {n_elements}"),
         thesis={"radius": 0.01, "n_elements": 8, "length": 0.55, "density": 1000.0, "E": 10e6, "nu": 0.3,
                 "dt": 1e-4, "duration": 16.0, "samples": 160001, "dt_max_thesis_model": 1e-4,
                 "rnn_errors": {"x": (3.58e-3, 1.70e-3), "y": (1.80e-3, 0.69e-3), "z": (2.73e-3, 1.41e-3)}},
         chosen={"square_half_side": half, "segment_durations": durations, "tip_stiffness": force.k,
-                "tip_mass": force.m, "plane": "xy (normal to the undeformed axis)"},
+                "tip_mass": force.m, "plane": "xy (normal to the undeformed axis)", **mesh},
     )
 
 
@@ -211,8 +227,9 @@ _HELDOUT_AMPLITUDE = 0.1  # N, printed: [0, 0, -100 cos(pi t)] mN
 
 
 def _semicircle_scene(name: str, title: str, force: NodePulse, description: str, thesis: dict,
-                      chosen: dict) -> Scene:
-    rod = Rod(0.6, _SECTION, _VERY_SOFT, n_elements=_SEMI_N)
+                      chosen: dict, n_elements: int) -> Scene:
+    mesh = _mesh(n_elements, _SEMI_N, even=True)
+    rod = Rod(0.6, _SECTION, _VERY_SOFT, n_elements=n_elements)
 
     def build(rod_: Rod) -> dict:
         p, R = circular_arc(rod_.arclength.tolist(), math.pi)
@@ -223,16 +240,19 @@ def _semicircle_scene(name: str, title: str, force: NodePulse, description: str,
                 "first": ("identity", 0.0), "last": ("R_z", 181.81)}, "force_node_1based": 51}
     return Scene(
         name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=2.0,
-        loads=Loads(force=force), initial=build, nodes_of_interest=(_SEMI_MID, 14),
-        node_labels=("node 51 (force)", "node 15"), thesis=dict(base, **thesis),
+        loads=Loads(force=force), initial=build, nodes_of_interest=(n_elements // 2, round(14 * n_elements / _SEMI_N)),
+        node_labels=(f"node {n_elements // 2 + 1} (force)", f"node {round(14 * n_elements / _SEMI_N) + 1}"),
+        thesis=dict(base, **thesis),
         chosen=dict({"arc": "semicircle x = R(1 - cos phi), y = R sin phi, R = L/pi = 0.191 m, ends "
                              "(0,0) and (2R,0), apex (R,R); chords lengthened ~1.6e-4 to be strain-free"},
-                    **chosen),
+                    **chosen, **mesh),
     )
 
 
-def semicircle() -> Scene:
-    force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, -1.0, 0.0), _SEMI_FORCE, 0.0, 0.5)
+def semicircle(n_elements: int = _SEMI_N) -> Scene:
+    """``n_elements`` (even; default the printed 100): the same rod on another mesh, the force on its middle
+    node, for mesh studies."""
+    force = NodePulse(n_elements + 1, n_elements // 2, (0.0, -1.0, 0.0), _SEMI_FORCE, 0.0, 0.5)
     return _semicircle_scene(
         "semicircle", "Paper II sim. III: clamped soft semicircle pushed at its middle for 0.5 s", force,
         "Paper II Simulation III: a very soft rod (radius 1 cm, 60 cm, 100 elements, E 10 kPa, rho 1000, "
@@ -245,11 +265,12 @@ def semicircle() -> Scene:
         "no damping.",
         {"force_direction": (0.0, -1.0, 0.0), "force_interval": (0.0, 0.5),
          "rnn_errors": {"x": (1.36e-3, 0.78e-3), "y": (0.23e-3, 0.13e-3), "z": (2.22e-3, 0.81e-3)}},
-        {"force_magnitude": _SEMI_FORCE})
+        {"force_magnitude": _SEMI_FORCE}, n_elements)
 
 
-def semicircle_heldout() -> Scene:
-    force = NodePulse(_SEMI_N + 1, _SEMI_MID, (0.0, 0.0, -1.0), _HELDOUT_AMPLITUDE, 1.0, 2.0 + 1e-9,
+def semicircle_heldout(n_elements: int = _SEMI_N) -> Scene:
+    """``n_elements``: as :func:`semicircle`'s."""
+    force = NodePulse(n_elements + 1, n_elements // 2, (0.0, 0.0, -1.0), _HELDOUT_AMPLITUDE, 1.0, 2.0 + 1e-9,
                       shape="cos_pi_t")
     return _semicircle_scene(
         "semicircle_heldout",
@@ -260,7 +281,7 @@ def semicircle_heldout() -> Scene:
         "dt 1e-4 s, 2 s. No gravity, no damping.",
         {"force": "[0, 0, -100 cos(pi t)] mN", "force_interval": (1.0, 2.0),
          "rnn_errors": {"x": (3.73e-3, 1.25e-3), "y": (2e-3, 0.2e-3), "z": (8.1e-3, 1.2e-3)}},
-        {"force_amplitude": _HELDOUT_AMPLITUDE})
+        {"force_amplitude": _HELDOUT_AMPLITUDE}, n_elements)
 
 
 BUILDERS = (ellipse, ellipse_horizontal, square_tracking, semicircle, semicircle_heldout)

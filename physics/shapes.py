@@ -128,8 +128,14 @@ def _ellipse_march(n: int, a: float, b: float, l: float) -> np.ndarray:
     hi_step = 3 * l / min(a, b)
     for i in range(n):
         ta = th[i]
-        th[i + 1] = scipy.optimize.brentq(lambda tb: _projected_chord(ta, tb, a, b) - l, ta, ta + hi_step,
-                                          xtol=1e-14)
+
+        def gap(tb):
+            return _projected_chord(ta, tb, a, b) - l
+        hi = ta + hi_step
+        if gap(hi) < 0:  # a long element on a flat ellipse: the projected chord peaks and falls within the bracket
+            grid = np.linspace(ta, hi, 65)[1:]
+            hi = grid[int(np.argmax([gap(x) >= 0 for x in grid]))]  # the first point past the chord's length
+        th[i + 1] = scipy.optimize.brentq(gap, ta, hi, xtol=1e-14)
     return th
 
 
@@ -152,7 +158,8 @@ def ellipse_loop(n_elements: int, width: float, height: float,
         th = _ellipse_march(n_elements - 1, a, b, l)
         return _projected_chord(th[-1], 2 * math.pi, a, b) - l  # the last element must close
 
-    l = scipy.optimize.brentq(gap, 0.97 * guess, 1.001 * guess, xtol=1e-15)
+    lo = 0.97 * guess if gap(0.97 * guess) > 0 else 0.8 * guess  # coarse meshes: chords well short of the arcs
+    l = scipy.optimize.brentq(gap, lo, 1.001 * guess, xtol=1e-15)
     theta = np.append(_ellipse_march(n_elements - 1, a, b, l), 2 * math.pi)
     scale = 1.0 if element_length is None else element_length / l
     x, y, tx, ty = _ellipse_points(theta, a, b)

@@ -335,3 +335,34 @@ def test_solver_error_is_reported_not_nan():
     integ = sc.make_integrator(dt=6e-4, stability="off")  # ~2.6x the stability limit
     with pytest.raises(SolverError):
         integ.simulate(sc.initial_state(integ), n_steps=3000)
+
+
+def test_paper2_scenes_on_another_mesh():
+    """The Paper II builders' ``n_elements`` (mesh studies): the same rod and loads, the headline node where the
+    printed mesh has it, the loop closed and free of axial strain, the semicircle still an equilibrium at rest."""
+    from physics.scenes_paper2 import ellipse, ellipse_horizontal, semicircle, semicircle_heldout, square_tracking
+    assert ellipse(58).chosen == ellipse().chosen and "n_elements" not in ellipse().chosen
+    for build, height in ((ellipse, 0.6), (ellipse_horizontal, 0.2)):
+        sc = build(30)
+        assert sc.rod.N == 30 and sc.rod.length == pytest.approx(ellipse().rod.length, rel=1e-12)
+        assert sc.chosen["n_elements"] == 30 and sc.nodes_of_interest[0] == 15
+        cfg = sc.initial_configuration()
+        p, F = cfg["p"], cfg["R"]
+        assert float(p[-1].abs().max()) == 0 and torch.allclose(F[0], F[-1])
+        d = p[1:] - p[:-1]
+        ax = 0.5 * ((F[:-1, :, 2] * d).sum(-1) + (F[1:, :, 2] * d).sum(-1))
+        assert torch.allclose(ax, torch.full_like(ax, sc.rod.lengths[0]), rtol=1e-10, atol=0)
+        # the same rod on longer chords closes a slightly larger ellipse
+        assert -float(p[15, 1]) == pytest.approx(height * sc.chosen["ellipse_scale"], rel=1e-6)
+        assert 1.0 < sc.chosen["ellipse_scale"] < 1.05
+    sc = semicircle_heldout(50)
+    assert sc.nodes_of_interest == (25, 7) and sc.loads.force.node == 25 and sc.loads.force.n_nodes == 51
+    integ = sc.make_integrator(stability="off")
+    s0 = sc.initial_state(integ)
+    s, _ = integ.simulate(s0, n_steps=100, record_every=100)
+    assert float((s.p - s0.p).abs().max()) < 1e-12
+    tip = square_tracking(4)
+    assert tip.nodes_of_interest == (4, 3) and tip.loads.force(1.0).shape == (5, 3)
+    for bad in (7, 0, 2.0):
+        with pytest.raises(ValueError, match="n_elements must be an even integer >= 2"):
+            semicircle(bad)
