@@ -51,7 +51,7 @@ class QuasiStaticStepper:
     (s), for error messages; ``programs``: where the compiled correction is kept for the next stepper of the same
     ``model`` and ``rest``; ``stages``: the solve's first tries (:data:`STAGES`; ``()``: the solver's own escalation
     at once). The attributes ``static`` and ``solution`` hold the last frame's static rod, ``iterations`` the LM
-    iterations its solve took in all."""
+    iterations of its solve's tries (of the fallback's sub-steps, the last one's)."""
 
     def __init__(self, model: QuasiStaticCorrection, rest: Tensor, emns, pose: dict, delta: float,
                  compile: bool = False, predictor: bool = True, programs: dict | None = None,
