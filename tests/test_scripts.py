@@ -454,6 +454,11 @@ def test_rollout_sensitivity_report_quick(tmp_path):
     # the motion above f Hz shrinks as f grows (the pushed node's y motion is slow: mostly below 2 Hz)
     above = [res["semicircle"]["step_error"]["above_hz"][f]["y"]["mean_mm"] for f in ("1", "2", "5", "10")]
     assert above == sorted(above, reverse=True) and above[-1] < 0.01 * above[0]
+    # on half the elements the push stays in the plane, and the mesh changes the node far more than the step does
+    mesh = res["semicircle"]["step_error"]["mesh"]
+    assert (mesh["n_elements"], mesh["printed"]) == (50, 100) and mesh["errors"]["z"]["max_mm"] == 0
+    assert mesh["errors"]["y"]["max_mm"] > 100 * step["dt"]["y"]["max_mm"]
+    assert "| semicircle (51) | 0.12-0.2 s | 50 of 100 |" in (tmp_path / "sens.md").read_text()
 
 
 def test_load_amplitude_report_quick(tmp_path):
