@@ -439,7 +439,8 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     xf = x.reshape(N, 6).contiguous()
     itf, livef = its.reshape(N).contiguous(), live.reshape(N).contiguous()
     # (no input passed twice: a trace would tie the two)
-    lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, itf + (solver.max_iter if max_iter is None else max_iter), tol, livef, bp, bq]
+    budget = itf + (solver.max_iter if max_iter is None else max_iter)
+    lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, budget, tol, livef, bp, bq]
     key = (compiled, lanes, tabs.magnet_rows, tabs.record_base, solver.scales, fkey, float(t), float(solver.fd_step),
            x.dtype, str(x.device), shp, tuple(rows.shape), _sig((bp, bq, *rest)), its.dtype)
     if key in _FAILED:
