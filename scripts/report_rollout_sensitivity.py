@@ -15,8 +15,7 @@ from its start at its printed step ``dt`` and at ``dt/2`` against ``dt/4``; wher
 is farther from the finer ones than the thesis's figure, that figure is below the accuracy of the
 training data themselves. The same against the scene on about half the elements (the loop: 30 of 58, a
 scene's ``n_elements``): what the physics itself changes when the mesh does. And the headline node's motion
-above 1-10 Hz there, which a model that
-follows only the slower motion misses. A surrogate whose rollout starts from the true
+above 1-10 Hz there, which a model that follows only the slower motion misses. A surrogate whose rollout starts from the true
 history still errs in every step; where the physics itself turns a 1 um error into more than the
 thesis's figure by the end, a free-running model meets that figure only with per-step errors below
 a micrometre. Writes
