@@ -58,6 +58,9 @@ class Args:
     fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)")
     out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)")
     resume: str = opt("", "a Lightning checkpoint to resume")
+    init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
+                             "--increments, --hidden, --width and --margin must match, --eta may differ (the LSTM "
+                             "reads any history); the linear part is fitted anew")
     quick: bool = opt(False, "smoke-test budget: 3 profiles of 1 s, two epochs of 4 batches, no evaluation")
 
 
@@ -107,6 +110,13 @@ def main(argv=None):
                             **fit_scales(s, d, ranges["train"]))
     model = QuasiStaticCorrection(cfg)
     residual = model.fit_linear(d, s, ranges["train"])
+    if a.init_from:
+        src = QuasiStaticSurrogate.load(a.init_from, task=task.name).model
+        differ = [k for k in ("increments", "hidden", "width", "margin") if getattr(src.config, k) != getattr(cfg, k)]
+        if differ:
+            raise SystemExit(f"--init-from {a.init_from}: its {', '.join(differ)} differ from this run's")
+        model.load_state_dict({k: v for k, v in src.state_dict().items() if k.split(".")[0] in ("lstm", "dense", "head")},
+                              strict=False)
     dm = QuasiStaticDataModule(s, d, a.eta, a.increments, a.horizon, a.val_horizon, a.batch_size, a.val_stride,
                                a.train_seed)
     module = QuasiStaticModule(model, lr=a.lr, epochs=a.epochs, loss=a.loss)

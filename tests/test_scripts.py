@@ -151,6 +151,14 @@ def test_train_quasistatic_quick_writes_a_loadable_hybrid(tmp_path, capsys):
     assert meta["epochs_run"] == 2 and math.isfinite(meta["linear_fit_residual"])
     engine = QuasiStaticSurrogate.load(tmp_path / "q.pt", task="magnetic_rod")
     assert engine.model.config.eta == 2 and list((tmp_path / "logs").rglob("metrics.csv"))
+    # started from those weights, a run validates first at the score they were selected by
+    run_script([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--init-from", "q.pt", "--out", "q2.pt",
+                "--log-dir", "logs"], tmp_path)
+    again = json.loads((tmp_path / "q2.json").read_text())
+    assert again["val_loss_start"] == pytest.approx(meta["val_loss_best"], rel=1e-6)
+    assert again["val_loss_start"] != pytest.approx(meta["val_loss_start"], rel=1e-5)  # not the untrained network's
+    script_fails([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--init-from", "q.pt", "--hidden", "16",
+                  "--out", "q3.pt"], tmp_path, "--init-from q.pt: its hidden differ")
     for extra, msg in ((["--eta", "1"], "--eta must be >= 2"), (["--fresh", "2", "--fresh-seed", "0"], "--fresh"),
                        (["--variants", "2"], "--variants must be >= 3"), (["--horizon", "0"], "--horizon must be >= 1")):
         parse_fails("train_quasistatic", extra, msg, capsys)
