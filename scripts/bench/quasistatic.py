@@ -142,7 +142,6 @@ def main(argv=None):
               f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second; "
               f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
               f"({its['compiled_warm']:.2f} LM iterations)")
-    if a.compile:
         w, e = whole["staged"], whole["escalation"]
         print(f"  the whole scene compiled ({w['steps']} steps): slowest step {w['max_step_s'] * 1e3:.1f} ms "
               f"({w['max_iterations']} LM iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
