@@ -106,8 +106,14 @@ class NodePulse:
             raise ValueError(f"NodePulse.shape must be 'constant' or 'cos_pi_t', got {shape!r}")
         self.n_nodes, self.node, self.t0, self.t1, self.shape = n_nodes, node, float(t0), float(t1), shape
         self.vector = float(amplitude) * torch.tensor(direction, dtype=torch.float64)
+        self._on_node = torch.zeros(n_nodes, 1, dtype=torch.float64)
+        self._on_node[node] = 1.0
 
     def __call__(self, t):
+        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): no branch on the time, zero outside
+            on = ((t >= self.t0) & (t < self.t1)).to(torch.float64)
+            scale = on * torch.cos(math.pi * t) if self.shape == "cos_pi_t" else on
+            return self._on_node * (self.vector * scale)
         t = float(t)  # float or 0-d tensor
         if not (self.t0 <= t < self.t1):
             return None

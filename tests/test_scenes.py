@@ -241,6 +241,23 @@ def test_semicircle_pulses():
     assert f(torch.tensor(0.6, dtype=torch.float32)) is None
 
 
+def test_semicircle_pulses_traced_equal_eager(monkeypatch):
+    """While torch.compile traces (LGVI.compiled_rollout) a pulse branches on no time value: the force is zero
+    outside its interval, and equal to the eager one inside."""
+    for name in ("semicircle", "semicircle_heldout"):
+        f = get_scene(name).loads.force
+        times = (0.0, 0.25, 0.4999, 0.5, 0.6, 1.0, 1.5, 1.99, 2.0, 2.5)
+        eager = [f(torch.tensor(t, dtype=torch.float64)) for t in times]
+        with monkeypatch.context() as m:
+            m.setattr(torch.compiler, "is_compiling", lambda: True)
+            for t, e in zip(times, eager):
+                traced = f(torch.tensor(t, dtype=torch.float64))
+                assert traced.shape == (101, 3)
+                torch.testing.assert_close(traced, torch.zeros(101, 3, dtype=torch.float64) if e is None else e,
+                                           rtol=0, atol=1e-15)
+        assert sum(e is not None for e in eager) == (3 if name == "semicircle" else 4)
+
+
 # ------------------------------------------------------------------------------------ runs
 @pytest.mark.parametrize("name", PAPER1 + PAPER2)
 def test_short_run_is_finite(name):
