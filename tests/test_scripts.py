@@ -171,6 +171,40 @@ def test_bench_quasistatic_quick(tmp_path):
     assert res["batch"] == 1 and res["check"]["sum_mean_deg"] < res["check"]["static_sum_mean_deg"] + 0.05
 
 
+def test_bench_work_precision_quick(tmp_path):
+    """The physics on half the mesh at ten times the step, and each shipped Simulation III surrogate, beside the
+    printed LGVI: the reference row errs nothing, the coarse physics a little in y (the push's plane), the mirrored
+    model nothing out of the plane."""
+    res = run_script([str(ROOT / "scripts/bench/work_precision.py"), "--quick", "--out", "wp"], tmp_path)
+    (s,) = res["scenes"]
+    rows = {(r["model"], r["n_elements"], r["dt_s"]): r for r in s["rows"]}
+    assert set(rows) == {("LGVI, printed", 100, 1e-4), ("LGVI", 50, 1e-3), ("semicircle", None, 0.01),
+                         ("semicircle_fast", None, 0.01)}
+    assert rows[("LGVI, printed", 100, 1e-4)]["max_mm"] == [0.0, 0.0, 0.0]
+    assert rows[("LGVI, printed", 100, 1e-4)]["speedup"] == 1.0
+    coarse = rows[("LGVI", 50, 1e-3)]
+    assert 0.05 < coarse["max_mm"][1] < 1.0 and coarse["max_mm"][2] == 0.0 and coarse["speedup"] > 2
+    mirrored = rows[("semicircle", None, 0.01)]
+    assert mirrored["max_mm"][0] < 1e-3 and mirrored["max_mm"][2] == 0.0 and 0 < mirrored["max_mm"][1] < 3
+    assert mirrored["speedup"] > coarse["speedup"]
+    assert (tmp_path / "wp/work_precision_semicircle.md").read_text().count("| LGVI") == 2
+    assert (tmp_path / "wp/work_precision_semicircle.png").stat().st_size > 10_000
+
+
+def test_work_precision_sweep_skips_what_a_scene_cannot_run():
+    """A scene without a mesh-study builder runs only on its printed mesh; a step above a mesh's stability limit
+    is refused by the LGVI (the benchmark reports it)."""
+    from cmlearn.data import get_task
+    wp = load_script("bench/work_precision")
+    task = get_task("square_tracking")
+    assert wp.physics_scene(task.scene_by_name("square_tracking_circle"), 4, 1e-4) is None
+    assert wp.physics_scene(task.scene_by_name("square_tracking_circle"), 8, 1.25e-4).dt == 1.25e-4
+    semi = get_task("semicircle").scene_by_name("semicircle")
+    assert wp.physics_scene(semi, 26, 1e-3).rod.N == 26
+    with pytest.raises(ValueError, match="stability limit"):
+        wp.physics_runner(wp.physics_scene(semi, 50, 5e-3), 0.01, compiled=False)
+
+
 def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epoch(tmp_path, capsys):
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--select-by", "rollout",
                 "--keep-top-k", "-1", "--threads", "1", "--out", "ck.pt", "--log-dir", "logs", "--rest-anchor",
