@@ -33,6 +33,7 @@ it grows to 19 um, ``docs/rollout_sensitivity.md``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -232,8 +233,9 @@ _SEMI_FORCE = 0.02  # N, chosen (not printed): 100 mN snaps the arch through (ap
 _HELDOUT_AMPLITUDE = 0.1  # N, printed: [0, 0, -100 cos(pi t)] mN
 
 
-def _semicircle_scene(name: str, title: str, force: NodePulse, description: str, thesis: dict,
+def _semicircle_scene(name: str, title: str, force: Callable[[int], NodePulse], description: str, thesis: dict,
                       chosen: dict, n_elements: int) -> Scene:
+    """``force(n_elements)``: the scene's pulse, built once the mesh is checked."""
     mesh = _mesh(n_elements, _SEMI_N, even=True)
     rod = Rod(0.6, _SECTION, _VERY_SOFT, n_elements=n_elements)
     quarter = round(14 * n_elements / _SEMI_N)  # the second node of interest: node 15 of the printed 101
@@ -247,7 +249,7 @@ def _semicircle_scene(name: str, title: str, force: NodePulse, description: str,
                 "first": ("identity", 0.0), "last": ("R_z", 181.81)}, "force_node_1based": 51}
     return Scene(
         name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=1e-4, duration=2.0,
-        loads=Loads(force=force), initial=build, nodes_of_interest=(n_elements // 2, quarter),
+        loads=Loads(force=force(n_elements)), initial=build, nodes_of_interest=(n_elements // 2, quarter),
         node_labels=(f"node {n_elements // 2 + 1} (force)", f"node {quarter + 1}"),
         thesis=dict(base, **thesis),
         chosen=dict({"arc": "semicircle x = R(1 - cos phi), y = R sin phi, R = L/pi = 0.191 m, ends "
@@ -259,7 +261,7 @@ def _semicircle_scene(name: str, title: str, force: NodePulse, description: str,
 def semicircle(n_elements: int = _SEMI_N) -> Scene:
     """``n_elements`` (even; default the printed 100): the same rod on another mesh, the force on its middle
     node, for mesh studies."""
-    force = NodePulse(n_elements + 1, n_elements // 2, (0.0, -1.0, 0.0), _SEMI_FORCE, 0.0, 0.5)
+    force = lambda n: NodePulse(n + 1, n // 2, (0.0, -1.0, 0.0), _SEMI_FORCE, 0.0, 0.5)  # noqa: E731
     return _semicircle_scene(
         "semicircle", "Paper II sim. III: clamped soft semicircle pushed at its middle for 0.5 s", force,
         "Paper II Simulation III: a very soft rod (radius 1 cm, 60 cm, 100 elements, E 10 kPa, rho 1000, "
@@ -277,8 +279,8 @@ def semicircle(n_elements: int = _SEMI_N) -> Scene:
 
 def semicircle_heldout(n_elements: int = _SEMI_N) -> Scene:
     """``n_elements``: as :func:`semicircle`'s."""
-    force = NodePulse(n_elements + 1, n_elements // 2, (0.0, 0.0, -1.0), _HELDOUT_AMPLITUDE, 1.0, 2.0 + 1e-9,
-                      shape="cos_pi_t")
+    force = lambda n: NodePulse(n + 1, n // 2, (0.0, 0.0, -1.0), _HELDOUT_AMPLITUDE, 1.0, 2.0 + 1e-9,  # noqa: E731
+                                shape="cos_pi_t")
     return _semicircle_scene(
         "semicircle_heldout",
         "Paper II sim. III held-out: semicircle under an out-of-plane 100 cos(pi t) mN force", force,
