@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 
@@ -42,7 +43,7 @@ from .rod import CircularSection, Material, Rod
 from .scene import Scene
 from .shapes import circular_arc, ellipse_loop, ellipse_perimeter
 
-__all__ = ["BUILDERS", "SquareTipForce", "NodePulse", "ellipse", "ellipse_horizontal", "square_tracking",
+__all__ = ["BUILDERS", "on_mesh", "SquareTipForce", "NodePulse", "ellipse", "ellipse_horizontal", "square_tracking",
            "semicircle", "semicircle_heldout"]
 
 _SOFT = Material(E=10e6, density=1000.0, nu=0.3)
@@ -118,9 +119,7 @@ class NodePulse:
         t = float(t)  # float or 0-d tensor
         if not (self.t0 <= t < self.t1):
             return None
-        f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
-        f[self.node] = self.vector * (math.cos(math.pi * t) if self.shape == "cos_pi_t" else 1.0)
-        return f
+        return self._on_node * (self.vector * (math.cos(math.pi * t) if self.shape == "cos_pi_t" else 1.0))
 
 
 # ------------------------------------------------------------------------------- Simulation I
@@ -294,3 +293,10 @@ def semicircle_heldout(n_elements: int = _SEMI_N) -> Scene:
 
 
 BUILDERS = (ellipse, ellipse_horizontal, square_tracking, semicircle, semicircle_heldout)
+
+
+def on_mesh(scene: Scene, n_elements: int) -> Scene | None:
+    """``scene`` (one of the builders' scenes, by name) rebuilt on ``n_elements``, its duration kept, for mesh
+    studies; None for a scene that has no builder here."""
+    builder = {b.__name__: b for b in BUILDERS}.get(scene.name)
+    return None if builder is None else replace(builder(n_elements), duration=scene.duration)

@@ -108,10 +108,10 @@ def step_error(task_name: str, quick: bool) -> dict:
     for k in (1, 2):
         out["cases"]["dt" if k == 1 else "dt/2"] = axis_errors(runs[k][cut:], runs[4][cut:], L)
     # the same scene on about half the elements (an even count where the headline node is the middle one)
-    from physics.scenes_paper2 import BUILDERS
+    from physics.scenes_paper2 import on_mesh
     n = scene.rod.N
     half = n // 2 + (n // 2) % 2 if n > 8 else n // 2
-    coarse = replace({b.__name__: b for b in BUILDERS}[scene.name](half), duration=scene.duration)
+    coarse = on_mesh(scene, half)
     sim = coarse.make_integrator()
     cfg = coarse.initial_configuration()
     every = task.record_every(coarse)

@@ -8,7 +8,7 @@ For each scene of the task (the printed one and the held-out ones) the reference
 free-running, in the same process:
 
 - the same LGVI on other meshes and steps (``SWEEPS``; the same rod, loads and headline node, built by the scene's
-  mesh-study builder, :data:`physics.scenes_paper2.BUILDERS`; a scene without one only on its printed mesh), eager
+  mesh-study builder, :func:`physics.scenes_paper2.on_mesh`; a scene without one only on its printed mesh), eager
   and, with ``--compile``, compiled (:meth:`physics.LGVI.compiled_rollout`, its compile time apart); a step above a
   mesh's stability limit is reported as such;
 - every shipped surrogate of the task, eager (``Surrogate.run_scene``) and, with ``--compile``, compiled.
@@ -39,7 +39,7 @@ from cmlearn.io import atomic_write, write_text_atomic
 from cmlearn.surrogate import Surrogate, surrogate_checkpoints
 from cmlearn.surrogate.evaluate import interest_slots, thesis_errors
 from physics import SolverError
-from physics.scenes_paper2 import BUILDERS
+from physics.scenes_paper2 import on_mesh
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -66,11 +66,8 @@ class Args:
 def physics_scene(scene, n_elements: int, dt: float):
     """``scene`` on ``n_elements`` at step ``dt`` (None where the scene has no mesh-study builder)."""
     if n_elements != scene.rod.N:
-        builder = {b.__name__: b for b in BUILDERS}.get(scene.name)
-        if builder is None:
-            return None
-        scene = replace(builder(n_elements), duration=scene.duration)
-    return replace(scene, dt=dt)
+        scene = on_mesh(scene, n_elements)
+    return None if scene is None else replace(scene, dt=dt)
 
 
 def physics_runner(scene, delta: float, compiled: bool):
@@ -139,10 +136,10 @@ def main(argv=None):
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
     names = [task.scene] if a.quick else [task.scene, *task.heldout]
-    engines = {p.stem: Surrogate.load(p, task=task.name) for p in surrogate_checkpoints(ROOT / "checkpoints")
-               if json.loads(p.with_suffix(".json").read_text())["task"] == task.name}
-    compiled = {stem: Surrogate.load(ROOT / "checkpoints" / f"{stem}.pt", task=task.name).compile()
-                for stem in engines} if a.compile else {}
+    paths = [p for p in surrogate_checkpoints(ROOT / "checkpoints")
+             if json.loads(p.with_suffix(".json").read_text())["task"] == task.name]
+    engines = {p.stem: Surrogate.load(p, task=task.name) for p in paths}
+    compiled = {p.stem: Surrogate.load(p, task=task.name).compile() for p in paths} if a.compile else {}
     results = []
     for name in names:
         scene = task.scene_by_name(name)
