@@ -51,9 +51,9 @@ _VERY_SOFT = Material(E=10e3, density=1000.0, nu=0.3)
 _SECTION = CircularSection(0.02)  # radius 1 cm
 
 
-def _min_jerk(x: float) -> tuple[float, float]:
-    """Quintic s(x) = 10x^3 - 15x^4 + 6x^5 and its second derivative on [0, 1]."""
-    x = min(max(x, 0.0), 1.0)
+def _min_jerk(x):
+    """Quintic s(x) = 10x^3 - 15x^4 + 6x^5 and its second derivative on [0, 1] (``x`` a float or a tensor)."""
+    x = x.clamp(0.0, 1.0) if torch.is_tensor(x) else min(max(x, 0.0), 1.0)
     return x**3 * (10 - 15 * x + 6 * x * x), x * (60 - 180 * x + 120 * x * x)
 
 
@@ -65,18 +65,35 @@ class SquareTipForce:
     corner. The force is the single-mode model's inverse ``F = k x_d + m x_d''`` with the
     Euler-Bernoulli tip stiffness ``k = 3 E I / L^3`` and the Rayleigh tip mass ``m = 33/140 rho A L``,
     in the plane normal to the undeformed axis (x, y); no axial force.
+
+    While ``torch.compile`` traces it (``LGVI.compiled_rollout``) the path is evaluated with tensor operations and
+    no branch on the time: the sum over all segments of each one's clamped quintic times its displacement (a
+    finished segment contributes its whole displacement, a later one nothing, and the quintic's second
+    derivative vanishes at both ends), equal to the eager segment search.
     """
 
     def __init__(self, rod: Rod, half_side: float, durations: tuple[float, ...]):
         E, I = rod.material.E, rod.section.second_moments[0]
         self.k = 3 * E * I / rod.length**3
         self.m = 33 / 140 * rod.line_mass * rod.length
-        a = float(half_side)
-        self.waypoints = [(0.0, 0.0), (a, a), (-a, a), (-a, -a), (a, -a), (a, a), (0.0, 0.0)]
-        if len(durations) != len(self.waypoints) - 1:
-            raise ValueError("SquareTipForce: need one duration per segment (6)")
-        self.durations = tuple(float(d) for d in durations)
         self.n_nodes = rod.n_nodes
+        self._tip = torch.zeros(2, rod.n_nodes, 3, dtype=torch.float64)
+        self._tip[0, -1, 0] = self._tip[1, -1, 1] = 1.0
+        a = float(half_side)
+        waypoints = [(0.0, 0.0), (a, a), (-a, a), (-a, -a), (a, -a), (a, a), (0.0, 0.0)]
+        if len(durations) != len(waypoints) - 1:
+            raise ValueError("SquareTipForce: need one duration per segment (6)")
+        self._set_path(waypoints, durations)
+
+    def _set_path(self, waypoints, durations):
+        self.waypoints = [tuple(map(float, w)) for w in waypoints]
+        self.durations = tuple(float(d) for d in durations)
+        if len(self.durations) != len(self.waypoints) - 1 or not all(d > 0 for d in self.durations):
+            raise ValueError(f"durations must be one positive number per segment ({len(self.waypoints) - 1}), "
+                             f"got {self.durations}")
+        w = torch.tensor(self.waypoints, dtype=torch.float64)
+        d = torch.tensor(self.durations, dtype=torch.float64)
+        self._start, self._length, self._first, self._move = torch.cumsum(d, 0) - d, d, w[0], w[1:] - w[:-1]
 
     def desired(self, t) -> tuple[tuple[float, float], tuple[float, float]]:
         """Desired lateral tip position (x, y) and acceleration at time ``t`` (float or 0-d tensor)."""
@@ -89,7 +106,15 @@ class SquareTipForce:
             t0 += T
         return self.waypoints[-1], (0.0, 0.0)
 
+    def desired_traced(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`desired` at a 0-d tensor ``t`` in tensor operations: position (2,) and acceleration (2,)."""
+        s, dds = _min_jerk((t - self._start) / self._length)
+        return self._first + s @ self._move, (dds / self._length**2) @ self._move
+
     def __call__(self, t) -> torch.Tensor:
+        if torch.compiler.is_compiling():
+            x, a = self.desired_traced(t)
+            return (self._tip * (self.k * x + self.m * a)[:, None, None]).sum(0)
         (x, y), (ax, ay) = self.desired(t)
         f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
         f[-1, 0] = self.k * x + self.m * ax

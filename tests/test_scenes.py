@@ -258,6 +258,27 @@ def test_semicircle_pulses_traced_equal_eager(monkeypatch):
         assert sum(e is not None for e in eager) == (3 if name == "semicircle" else 4)
 
 
+def test_tip_path_forces_traced_equal_eager(monkeypatch):
+    """Simulation II's feed-forward tip forces (the printed square, the held-out circle and figure eight, random
+    waypoint paths) evaluated in tensor operations while torch.compile traces equal the eager segment search at
+    and between the corners and after the end, and compile into one graph (fullgraph: no branch on the time)."""
+    from cmlearn.data.tasks import _square_variants, tracking_heldout_scene
+    square = get_scene("square_tracking")
+    forces = [square.loads.force, *(tracking_heldout_scene(k).loads.force for k in ("circle", "figure8")),
+              *_square_variants(square, 3, 0)["force"].fns[1:]]
+    times = (0.0, 0.7, 1.9999, 2.0, 3.3, 5.0, 7.77, 11.0, 13.0, 15.9, 16.0, 17.5)
+    for f in forces:
+        eager = torch.stack([f(torch.tensor(t, dtype=torch.float64)) for t in times])
+        assert float(eager[:, -1, :2].abs().amax(0).min()) > 0.05  # the force moves the tip in x and y
+        with monkeypatch.context() as m:
+            m.setattr(torch.compiler, "is_compiling", lambda: True)
+            traced = torch.stack([f(torch.tensor(t, dtype=torch.float64)) for t in times])
+        torch.testing.assert_close(traced, eager, rtol=0, atol=1e-15)
+    graph = torch.compile(lambda t: square.loads.force(t), backend="eager", fullgraph=True)
+    torch.testing.assert_close(graph(torch.tensor(4.2, dtype=torch.float64)),
+                               square.loads.force(torch.tensor(4.2, dtype=torch.float64)), rtol=0, atol=1e-15)
+
+
 # ------------------------------------------------------------------------------------ runs
 @pytest.mark.parametrize("name", PAPER1 + PAPER2)
 def test_short_run_is_finite(name):

@@ -63,17 +63,23 @@ class BatchedNodeForce:
 
 class TipPathForce(SquareTipForce):
     """Feed-forward tip force ``F = k x_d + m x_d''`` along any lateral path: minimum-jerk segments
-    through ``waypoints`` (list of (x, y)) with ``durations``, or a closed ``curve(t) -> ((x, y), (ax, ay))``."""
+    through ``waypoints`` (list of (x, y)) with ``durations``, or a closed ``curve(t) -> ((x, y), (ax, ay))``
+    (``t`` a float, or while traced a 0-d tensor: then in tensor operations)."""
 
     def __init__(self, rod, waypoints=None, durations=None, curve: Callable | None = None):
         super().__init__(rod, 0.0, (1.0,) * 6)
         self.curve = curve
         if curve is None:
-            self.waypoints = [tuple(map(float, w)) for w in waypoints]
-            self.durations = tuple(float(d) for d in durations)
+            self._set_path(waypoints, durations)
 
     def desired(self, t):
         return self.curve(float(t)) if self.curve is not None else super().desired(t)
+
+    def desired_traced(self, t):
+        if self.curve is None:
+            return super().desired_traced(t)
+        (x, y), (ax, ay) = self.curve(t)
+        return torch.stack((x, y)), torch.stack((ax, ay))
 
 
 def _pulse_fn(n_nodes, node, vector, t0, t1, shape):
@@ -240,12 +246,14 @@ def _closed_curve(kind: str, radius: float = 0.05, period: float = 16.0):
     def ramp(t):  # minimum-jerk fade-in/out over 2 s keeps the start and end at rest
         return _min_jerk(t / 2.0)[0] * _min_jerk((period - t) / 2.0)[0]
 
-    def curve(t):
+    def curve(t):  # t: a float, or a 0-d tensor (traced)
+        sin, cos = (torch.sin, torch.cos) if torch.is_tensor(t) else (math.sin, math.cos)
+
         def pos(tt):
             a = ramp(tt)
             if kind == "circle":
-                return a * radius * math.sin(w * tt), a * radius * (1 - math.cos(w * tt))
-            return a * radius * math.sin(w * tt), a * radius * math.sin(2 * w * tt)
+                return a * radius * sin(w * tt), a * radius * (1 - cos(w * tt))
+            return a * radius * sin(w * tt), a * radius * sin(2 * w * tt)
         h = 1e-3
         (x0, y0), (xp, yp), (xm, ym) = pos(t), pos(t + h), pos(t - h)
         return (x0, y0), ((xp - 2 * x0 + xm) / h**2, (yp - 2 * y0 + ym) / h**2)
