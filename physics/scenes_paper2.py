@@ -86,10 +86,16 @@ class SquareTipForce:
         self._set_path(waypoints, durations)
 
     def _set_path(self, waypoints, durations):
-        self.waypoints = [tuple(map(float, w)) for w in waypoints]
-        self.durations = tuple(float(d) for d in durations)
-        if len(self.durations) != len(self.waypoints) - 1 or not all(d > 0 for d in self.durations):
-            raise ValueError(f"durations must be one positive number per segment ({len(self.waypoints) - 1}), "
+        try:
+            self.waypoints = [tuple(map(float, w)) for w in waypoints]
+            self.durations = tuple(float(d) for d in durations)
+        except (TypeError, ValueError):
+            raise ValueError(f"waypoints must be (x, y) pairs (m) and durations numbers (s), got {waypoints!r} and "
+                             f"{durations!r}") from None
+        if len(self.waypoints) < 2 or any(len(w) != 2 for w in self.waypoints):
+            raise ValueError(f"waypoints must be at least two (x, y) pairs (m), got {waypoints!r}")
+        if len(self.durations) != len(self.waypoints) - 1 or not all(0 < d < math.inf for d in self.durations):
+            raise ValueError(f"durations must be one finite positive number (s) per segment ({len(self.waypoints) - 1}), "
                              f"got {self.durations}")
         w = torch.tensor(self.waypoints, dtype=torch.float64)
         d = torch.tensor(self.durations, dtype=torch.float64)

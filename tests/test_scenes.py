@@ -258,6 +258,17 @@ def test_semicircle_pulses_traced_equal_eager(monkeypatch):
         assert sum(e is not None for e in eager) == (3 if name == "semicircle" else 4)
 
 
+def test_tip_path_force_rejects_bad_paths():
+    from cmlearn.data.tasks import TipPathForce
+    rod = get_scene("square_tracking").rod
+    for pts, dur, name in (([(0, 0), (0.1, 0)], [0.0], "durations"), ([(0, 0), (0.1, 0)], [1.0, 1.0], "durations"),
+                           ([(0, 0), (0.1, 0)], [math.inf], "durations"), ([(0, 0)], [], "waypoints"),
+                           ([(0, 0, 0), (0.1, 0, 0)], [1.0], "waypoints"), ([(0, 0), ("a", 0)], [1.0], "waypoints")):
+        with pytest.raises(ValueError, match=name):
+            TipPathForce(rod, pts, dur)
+    assert TipPathForce(rod, [(0, 0), (0.1, 0)], [2.0])(torch.tensor(1.0))[-1, 0] > 0
+
+
 def test_tip_path_forces_traced_equal_eager(monkeypatch):
     """Simulation II's feed-forward tip forces (the printed square, the held-out circle and figure eight, random
     waypoint paths) evaluated in tensor operations while torch.compile traces equal the eager segment search at
