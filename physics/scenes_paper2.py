@@ -114,13 +114,14 @@ class SquareTipForce:
 
     def desired_traced(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`desired` at a 0-d tensor ``t`` in tensor operations: position (2,) and acceleration (2,)."""
-        s, dds = _min_jerk((t - self._start) / self._length)
-        return self._first + s @ self._move, (dds / self._length**2) @ self._move
+        start, length, first, move = (a.to(t) for a in (self._start, self._length, self._first, self._move))
+        s, dds = _min_jerk((t - start) / length)
+        return first + s @ move, (dds / length**2) @ move
 
     def __call__(self, t) -> torch.Tensor:
         if torch.compiler.is_compiling():
             x, a = self.desired_traced(t)
-            return (self._tip * (self.k * x + self.m * a)[:, None, None]).sum(0)
+            return (self._tip.to(x) * (self.k * x + self.m * a)[:, None, None]).sum(0)
         (x, y), (ax, ay) = self.desired(t)
         f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
         f[-1, 0] = self.k * x + self.m * ax
@@ -146,7 +147,7 @@ class NodePulse:
         if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): no branch on the time, zero outside
             on = ((t >= self.t0) & (t < self.t1)).to(torch.float64)
             scale = on * torch.cos(math.pi * t) if self.shape == "cos_pi_t" else on
-            return self._on_node * (self.vector * scale)
+            return self._on_node.to(t) * (self.vector.to(t) * scale)
         t = float(t)  # float or 0-d tensor
         if not (self.t0 <= t < self.t1):
             return None
