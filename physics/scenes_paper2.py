@@ -80,10 +80,7 @@ class SquareTipForce:
         self._tip = torch.zeros(2, rod.n_nodes, 3, dtype=torch.float64)
         self._tip[0, -1, 0] = self._tip[1, -1, 1] = 1.0
         a = float(half_side)
-        waypoints = [(0.0, 0.0), (a, a), (-a, a), (-a, -a), (a, -a), (a, a), (0.0, 0.0)]
-        if len(durations) != len(waypoints) - 1:
-            raise ValueError("SquareTipForce: need one duration per segment (6)")
-        self._set_path(waypoints, durations)
+        self._set_path([(0.0, 0.0), (a, a), (-a, a), (-a, -a), (a, -a), (a, a), (0.0, 0.0)], durations)
 
     def _set_path(self, waypoints, durations):
         try:
