@@ -19,6 +19,12 @@ superposition, at a fraction of its cost (an exact coil evaluation costs ~1 ms, 
 here ~0.1 ms). The cache is the only state: it is dropped when the hook is called at an earlier
 time than before or with another batch shape (a new run), and :meth:`CoilField.fresh` gives an
 independent copy, so that a run's result does not depend on what was evaluated before it.
+
+The profiles and the hook are traceable: while ``torch.compile`` traces them (the LGVI's compiled blocks of steps,
+:meth:`physics.lgvi.LGVI.compiled_rollout`) a profile is evaluated in tensor operations at a 0-d tensor time and the
+hook extrapolates from the kept maps; the LGVI keeps a block only if step-by-step evaluation would have kept the
+maps throughout (:meth:`CoilField.block_ready`, :meth:`CoilField.drift`) and replays it eagerly otherwise, so that
+the compiled rollout refreshes the maps exactly where the eager one does.
 """
 from __future__ import annotations
 
@@ -35,9 +41,9 @@ __all__ = ["MinJerkCurrents", "SinusoidCurrents", "BatchedCurrents", "CoilField"
 _F64 = torch.float64
 
 
-def min_jerk(x: float) -> float:
-    """Quintic ``10x^3 - 15x^4 + 6x^5`` on [0, 1] (clamped outside)."""
-    x = min(max(x, 0.0), 1.0)
+def min_jerk(x):
+    """Quintic ``10x^3 - 15x^4 + 6x^5`` on [0, 1] (clamped outside); ``x`` a float or a tensor."""
+    x = x.clamp(0.0, 1.0) if torch.is_tensor(x) else min(max(x, 0.0), 1.0)
     return x**3 * (10 - 15 * x + 6 * x * x)
 
 
@@ -76,8 +82,14 @@ class MinJerkCurrents:
                 t += self.moves[i]
                 knots.append(t)  # end of move i
         self._knots, self.duration = knots, t
+        # the moves as tensors for the traced form: move i starts at the end of hold i
+        self._move_start = torch.tensor(knots[0::2][: n - 1], dtype=_F64)
+        self._move_length = torch.tensor(self.moves, dtype=_F64)
 
     def __call__(self, t) -> Tensor:
+        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): every move's clamped quintic, no branch
+            s = min_jerk((t - self._move_start.to(t)) / self._move_length.to(t))
+            return self.setpoints[0].to(t) + s @ self.setpoints.diff(dim=0).to(t)
         t = float(t)
         j = bisect.bisect_right(self._knots, t)
         if j >= len(self._knots):
@@ -110,6 +122,9 @@ class SinusoidCurrents:
         self.ramp = float(ramp)
 
     def __call__(self, t) -> Tensor:
+        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
+            w = torch.sin(2 * math.pi * self.frequencies[:, None].to(t) * t + self.phases.to(t))
+            return min_jerk(t / self.ramp) * (self.amplitudes.to(t) * w).sum(0)
         t = float(t)
         w = torch.sin(2 * math.pi * self.frequencies[:, None] * t + self.phases)
         return min_jerk(t / self.ramp) * (self.amplitudes * w).sum(0)
@@ -149,6 +164,8 @@ class CoilField:
         return CoilField(self.emns, self.currents, self.tol)
 
     def _maps(self, t: float, x: Tensor):
+        if torch.compiler.is_compiling():  # a compiled block of LGVI steps: the kept maps (block_ready, drift)
+            return self._beta + (self._grad * (x - self._x0)[..., :, None, None, :]).sum(-1), self._grad
         if t < self._t or self._x0 is None or self._x0.shape != x.shape or self._x0.dtype != x.dtype:
             self._clear()
         self._t = t
@@ -161,13 +178,31 @@ class CoilField:
 
     def field_and_gradient(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
         I = torch.as_tensor(self.currents(t), dtype=positions.dtype, device=positions.device)
-        beta, grad = self._maps(float(t), positions)
+        beta, grad = self._maps(t if torch.compiler.is_compiling() else float(t), positions)
         B = (beta * I[..., None, :, None]).sum(-2)
         dB = (grad * I[..., None, :, None, None]).sum(-3)
         return B, dB
 
     def __call__(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
         return self.field_and_gradient(t, positions)
+
+    # the LGVI's compiled blocks of steps (LGVI.compiled_rollout): traced, the hook extrapolates from the kept maps
+    # with no refresh test; the block is kept only if evaluating it step by step would have kept them too, that is
+    # if block_ready() held before it and drift() stayed within tol at every step, else it is replayed eagerly
+    def block_ready(self, t: float, positions: Tensor) -> bool:
+        """Whether the next evaluation, at time ``t`` and these magnet positions, would keep the maps (no new run,
+        no refresh)."""
+        x0 = self._x0
+        return (x0 is not None and t >= self._t and x0.shape == positions.shape and x0.dtype == positions.dtype
+                and float((positions.detach() - x0).abs().max()) <= self.tol)
+
+    def drift(self, positions: Tensor) -> Tensor:
+        """Largest coordinate distance (m) of the magnets from where the kept maps were evaluated (traceable)."""
+        return (positions.detach() - self._x0).abs().amax()
+
+    def block_done(self, t: float):
+        """A compiled block's last evaluation was at time ``t``."""
+        self._t = float(t)
 
     def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
         B, dB = self.field_and_gradient(t, positions)

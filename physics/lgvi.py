@@ -31,7 +31,7 @@ from torch import Tensor
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
 from .lie import mtm3, mtv3, mv3
-from .loads import Loads, magnet_node_loads
+from .loads import Loads, magnet_node_loads, magnet_positions
 from .rod import Rod, RodParams
 
 __all__ = ["Boundary", "LGVIState", "Trajectory", "LGVI", "solve_cayley"]
@@ -191,6 +191,7 @@ class LGVI:
             raise ValueError(f"Loads.gravity must be a 3-vector, got shape {tuple(self._gravity.shape)}")
         self._has_magnets = self.params.magnet_elem.numel() > 0 and self.loads.field is not None
         self._compiled = {}
+        self.eager_blocks = 0  # compiled_rollout: blocks of its last call stepped eagerly (a field cache refresh)
 
     # ------------------------------------------------------------------ states
     def initial_state(self, p: Tensor | None = None, R: Tensor | None = None, v: Tensor | None = None,
@@ -314,30 +315,56 @@ class LGVI:
         replayed eagerly to report the exact step. Returns ``(state, positions (..., T, n, 3))``
         with positions recorded every ``record_every`` calls' worth of steps (None: final only).
         The first call compiles (seconds); time it separately.
+
+        A field hook that keeps a cache between evaluations (``block_ready``, ``drift``, ``tol`` and
+        ``block_done``, as :class:`physics.coil_currents.CoilField`) runs traced on its cache: a call is kept
+        only if the hook was ready before it and its drift stayed within ``tol`` at every step, else the block
+        is replayed eagerly (where the hook refreshes its cache), so the cache is refreshed at the same steps
+        as in the eager rollout. ``self.eager_blocks`` counts the blocks so replayed in the last call.
         """
         if n_steps % steps_per_call:
             raise ValueError(f"compiled_rollout: n_steps={n_steps} must be a multiple of steps_per_call={steps_per_call}")
+        field = self.loads.field if self._has_magnets else None
+        guarded = hasattr(field, "drift")
         fn = self._compiled.get((steps_per_call, newton_iters))
         if fn is None:
             def fused(t, p, v, R, pi):
                 res_max = torch.zeros((), dtype=p.dtype, device=p.device)
+                drift = torch.zeros((), dtype=p.dtype, device=p.device)
                 for _ in range(steps_per_call):
+                    if guarded:  # where this step evaluates the field
+                        drift = torch.maximum(drift, field.drift(magnet_positions(p, self.params)))
                     t, p, v, R, pi, _, res = self._advance(t, p, v, R, pi, newton_iters, check=False)
                     res_max = torch.maximum(res_max, res.amax())
-                return t, p, v, R, pi, res_max
+                return t, p, v, R, pi, res_max, drift
             fn = torch.compile(fused, dynamic=False, fullgraph=False)
             self._compiled[(steps_per_call, newton_iters)] = fn
         t = self._tensor_time(state.t)
         p, v, R, pi = state.p, state.v, state.R, state.pi
         rec = [p] if record_every else None
         tol = self._residual_limit()
+        self.eager_blocks = 0
         for c in range(n_steps // steps_per_call):
             good = LGVIState(state.t + c * steps_per_call * self.dt, p, v, R, pi, state.step + c * steps_per_call)
-            t, p, v, R, pi, res = fn(t, p, v, R, pi)
-            if not (bool(torch.isfinite(p).all()) and float(res) <= tol):
-                self._replay(good, good.step + steps_per_call)
-                raise SolverError("compiled rollout failed but the eager replay did not",
-                                  step=good.step, time=good.t)
+            until = good.step + steps_per_call
+            if guarded and not field.block_ready(good.t, magnet_positions(p, self.params)):
+                out = None
+            else:
+                out = fn(t, p, v, R, pi)
+                if guarded and float(out[6]) > field.tol:
+                    out = None
+            if out is None:  # the hook would refresh its cache within the block: step it eagerly
+                new = self._replay(good, until)
+                t, p, v, R, pi = self._tensor_time(new.t), new.p, new.v, new.R, new.pi
+                self.eager_blocks += 1
+            else:
+                t, p, v, R, pi, res, _ = out
+                if not (bool(torch.isfinite(p).all()) and float(res) <= tol):
+                    self._replay(good, until)
+                    raise SolverError("compiled rollout failed but the eager replay did not",
+                                      step=good.step, time=good.t)
+                if guarded:
+                    field.block_done(good.t + (steps_per_call - 1) * self.dt)
             if record_every and (c + 1) % record_every == 0:
                 rec.append(p)
         out = LGVIState(state.t + n_steps * self.dt, p, v, R, pi, state.step + n_steps)
@@ -406,10 +433,11 @@ class LGVI:
         )
         return state, traj
 
-    def _replay(self, state: LGVIState, until: int):
+    def _replay(self, state: LGVIState, until: int) -> LGVIState:
         while state.step < until:
             state, (_, res) = self.step(state, _return_info=True)
             self._check(state, res)
+        return state
 
     # ------------------------------------------------------------------ diagnostics
     def potential_energy(self, state: LGVIState) -> Tensor:

@@ -50,11 +50,17 @@ class Loads:
         return _value(self.torque, t)
 
 
+def magnet_positions(p: Tensor, prm: RodParams) -> Tensor:
+    """Magnet positions (..., K, 3) from the node positions."""
+    e, xi = prm.magnet_elem, prm.magnet_xi
+    pa, pb = p[..., e, :], p[..., e + 1, :]
+    return pa + xi[:, None] * (pb - pa)
+
+
 def magnet_poses(p: Tensor, R: Tensor, psi: Tensor, prm: RodParams):
     """Positions (..., K, 3), orientations (..., K, 3, 3) and world moments (..., K, 3)."""
     e, xi = prm.magnet_elem, prm.magnet_xi
-    pa, pb = p[..., e, :], p[..., e + 1, :]
-    pos = pa + xi[:, None] * (pb - pa)
+    pos = magnet_positions(p, prm)
     Rm = R[..., e, :, :] @ cay(xi[:, None] * psi[..., e, :])
     moments = (Rm * prm.magnet_moment[..., None, :]).sum(-1)
     return pos, Rm, moments

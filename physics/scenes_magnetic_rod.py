@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .coil_currents import CoilField, MinJerkCurrents, SinusoidCurrents
+from .coil_currents import CoilField, MinJerkCurrents, SinusoidCurrents, min_jerk
 from .loads import Loads
 from .magnetics.emns import six_coil_emns
 from .rod import Magnet, Rod, SquareSection
@@ -285,12 +285,16 @@ class PlanarFieldCurrents:
     def field(self, t) -> tuple[float, float]:
         b0, b1, f1, p1, a0, f2, p2, a1, f3, p3, ramp = self.params
         t = float(t)
-        from .coil_currents import min_jerk
         b = min_jerk(t / ramp) * (b0 + b1 * math.sin(2 * math.pi * f1 * t + p1))
         a = a0 * math.sin(2 * math.pi * f2 * t + p2) + a1 * math.sin(2 * math.pi * f3 * t + p3)
         return b * math.cos(a), b * math.sin(a)
 
     def __call__(self, t) -> torch.Tensor:
+        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
+            b0, b1, f1, p1, a0, f2, p2, a1, f3, p3, ramp = self.params
+            b = min_jerk(t / ramp) * (b0 + b1 * torch.sin(2 * math.pi * f1 * t + p1))
+            a = a0 * torch.sin(2 * math.pi * f2 * t + p2) + a1 * torch.sin(2 * math.pi * f3 * t + p3)
+            return (b * torch.cos(a)) * self.basis[0].to(t) + (b * torch.sin(a)) * self.basis[1].to(t)
         bx, bz = self.field(t)
         return bx * self.basis[0] + bz * self.basis[1]
 

@@ -5,7 +5,8 @@
 One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`, the real-time stepper) is the
 static Cosserat solve at the next frame's currents, started from the secant predictor of the last two frames (13
 nodes, float64, eager), and the learned correction (float32); with ``--compile`` also with the solver's compiled
-path and the correction one program compiled ahead of time (their compile timed apart), and that compiled step
+path and the correction one program compiled ahead of time (their compile timed apart) against the LGVI compiled
+too (:meth:`physics.lgvi.LGVI.compiled_rollout`, 4 steps a call), and that compiled step
 started from the last frame's solution alone (no predictor), and the compiled step along the whole scene, whose
 slowest steps are the snap-throughs: with the staged solve (:data:`~cmlearn.surrogate.quasistatic_stepper.STAGES`)
 and with the solver's own escalation of load steps instead; the LSTM surrogate's (``checkpoints/<task>.pt``) is
@@ -27,23 +28,10 @@ import torch
 
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
+from cmlearn.eval.timing import lgvi_blocks
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, short_check
 from cmlearn.surrogate.quasistatic_stepper import STAGES
-
-
-def lgvi_block(scene, steps: int):
-    """``block()``: seconds per simulated second of the eager LGVI over its next ``steps`` steps of one rollout of
-    ``scene`` continued from call to call."""
-    sim = scene.make_integrator()
-    cfg = scene.initial_configuration()
-    state = [sim.initial_state(p=cfg["p"], R=cfg.get("R"))]
-
-    def block() -> float:
-        t0 = time.perf_counter()
-        state[0] = sim.simulate(state[0], n_steps=steps, record_every=steps)[0]
-        return (time.perf_counter() - t0) / (steps * scene.dt)
-    return block
 
 
 def main(argv=None):
@@ -64,19 +52,20 @@ def main(argv=None):
     hybrid = QuasiStaticSurrogate.load(find_checkpoint(f"{task.name}_quasistatic"), task=task.name)
     lstm = Surrogate.load(find_checkpoint(task.name), task=task.name)
     n = 10 if a.quick else 50  # hybrid / LSTM steps a round
-    lgvi_steps = 25 if a.quick else 250  # LGVI steps a round (its dt is 0.08 ms)
+    lgvi_steps = 24 if a.quick else 248  # LGVI steps a round (its dt is 0.08 ms; a multiple of 4 steps a compiled call)
     latency = task.hook("closed_loop_latency")
     short = replace(scene, duration=0.2)
     step_s = {"hybrid": [], "hybrid_static_solve": [], "hybrid_correction": [], "lstm": [], "lgvi_per_sim": [],
               "hybrid_compiled": [], "hybrid_compiled_solve": [], "hybrid_compiled_correction": [],
-              "hybrid_compiled_warm": []}
+              "hybrid_compiled_warm": [], "lgvi_per_sim_compiled": []}
     its = {}
-    block = lgvi_block(scene, lgvi_steps)
+    block = lgvi_blocks(scene, lgvi_steps, compiled=False)[0]
     compile_s = None
     if a.compile:
         t0 = time.perf_counter()
         hybrid.latency(scene, n=1, compile=True)
         compile_s = time.perf_counter() - t0
+        block_compiled, lgvi_compile_s, _ = lgvi_blocks(scene, lgvi_steps, compiled=True)
     for _ in range(rounds):
         if a.compile:
             h = hybrid.latency(scene, n=n, compile=True)
@@ -86,6 +75,7 @@ def main(argv=None):
             w = hybrid.latency(scene, n=n, compile=True, predictor=False)
             step_s["hybrid_compiled_warm"].append(w["step_s"])
             its.update(compiled=h["iterations"], compiled_warm=w["iterations"])
+            step_s["lgvi_per_sim_compiled"].append(block_compiled())
         h = hybrid.latency(scene, n=n)
         step_s["hybrid"].append(h["step_s"])
         step_s["hybrid_static_solve"].append(h["static_solve_s"])
@@ -124,7 +114,11 @@ def main(argv=None):
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
-                    "compile_s": compile_s, "scene_steps": whole["staged"]["steps"]})
+                    "compile_s": compile_s, "scene_steps": whole["staged"]["steps"],
+                    "lgvi_step_hz_compiled": 1 / (mean(step_s["lgvi_per_sim_compiled"]) * scene.dt),
+                    "lgvi_compile_s": lgvi_compile_s,
+                    "speedup_per_simulated_second_both_compiled": mean(
+                        lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim_compiled"], step_s["hybrid_compiled"]))})
         for label, w in whole.items():
             res.update({f"slowest_step_ms_{label}": w["max_step_s"] * 1e3, f"steps_over_frame_{label}": w["over_frame"],
                         f"max_lm_iterations_{label}": w["max_iterations"],
@@ -139,7 +133,9 @@ def main(argv=None):
               f"{res['hybrid_static_solve_ms_compiled']:.2f} ms in {its['compiled']:.2f} LM iterations, correction "
               f"{res['hybrid_correction_us_compiled']:.0f} us), "
               f"{res['hybrid_real_time_factor_compiled']:.2f}x real time, "
-              f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second; "
+              f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second, "
+              f"{res['speedup_per_simulated_second_both_compiled']:.1f}x than the LGVI compiled "
+              f"({res['lgvi_step_hz_compiled']:.0f} steps/s, compile {lgvi_compile_s:.0f} s); "
               f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
               f"({its['compiled_warm']:.2f} LM iterations)")
         w, e = whole["staged"], whole["escalation"]

@@ -1,0 +1,29 @@
+"""Wall time of the LGVI on a scene, in blocks of one rollout continued from call to call (the benchmarks' peer)."""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+
+def lgvi_blocks(scene, steps: int, compiled: bool, steps_per_call: int = 4) -> tuple[Callable[[], float], float, object]:
+    """``(block, warm-up seconds, integrator)``: ``block()`` gives the seconds per simulated second of the eager (or
+    compiled, ``steps_per_call`` steps a call: :meth:`physics.lgvi.LGVI.compiled_rollout`) LGVI over its next
+    ``steps`` steps of ``scene``, one rollout continued from call to call from the scene's start; the warm-up (the
+    compile, for the compiled path) runs a few steps of it beforehand, discarded. The integrator's
+    ``eager_blocks`` (compiled) counts the calls of the last block stepped eagerly, where a field cache refreshed."""
+    if steps % steps_per_call or steps < 1:
+        raise ValueError(f"steps must be a positive multiple of steps_per_call={steps_per_call}, got {steps}")
+    sim = scene.make_integrator()
+    cfg = scene.initial_configuration()
+    state = [sim.initial_state(p=cfg["p"], R=cfg.get("R"))]
+    run = (lambda st, n: sim.compiled_rollout(st, n_steps=n, steps_per_call=steps_per_call)) if compiled else \
+        (lambda st, n: sim.simulate(st, n_steps=n, record_every=n))
+    t0 = time.perf_counter()
+    run(state[0], 2 * steps_per_call)
+    warm = time.perf_counter() - t0
+
+    def block() -> float:
+        t0 = time.perf_counter()
+        state[0] = run(state[0], steps)[0]
+        return (time.perf_counter() - t0) / (steps * scene.dt)
+    return block, warm, sim
