@@ -7,7 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from physics.coil_currents import BatchedCurrents, CoilField, MinJerkCurrents, SinusoidCurrents
+from physics.coil_currents import BatchedCurrents, CoilField, MinJerkCurrents
 from physics.scenes import get_scene
 from physics.scenes_magnetic_rod import eMNS, heldout_currents, planar_heldout_currents, printed_currents
 
