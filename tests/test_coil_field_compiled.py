@@ -17,7 +17,8 @@ F64 = torch.float64
 def test_current_profiles_traced_equal_eager(monkeypatch):
     """While traced, each profile is evaluated in tensor operations (every move's clamped quintic at once, the
     sinusoids at a tensor time); it equals the eager evaluation at and between the set-point moves' knots and after
-    the end (1e-12 A, measured ~1e-15), and the printed profile compiles with no graph break."""
+    the end (1e-12 A, measured ~1e-15), and the printed profile compiles with no graph break (every scene's loads:
+    tests/test_scenes.py)."""
     printed = printed_currents()
     profiles = {"printed": printed, "held out": heldout_currents(), "planar": planar_heldout_currents(),
                 "batched": BatchedCurrents([printed, heldout_currents(seed=3)]),

@@ -304,6 +304,35 @@ def test_short_run_is_finite(name):
     assert float((s.p - s0.p).abs().max()) < 0.05 * sc.rod.length  # 200 steps: no blow-up
 
 
+@pytest.mark.parametrize("name", PAPER1 + PAPER2)
+def test_scene_loads_trace_into_one_graph(name):
+    """What the LGVI's compiled rollout traces of a scene's loads (gravity, forces, torques, the magnets' field:
+    ``LGVI.external_loads``) compiles into one graph for every time (no graph break, no recompile: where a load reads
+    the time as a Python number, dynamo breaks the graph there and specializes on its value) and equals the eager
+    loads at times across the scene, its force pulses and current moves included (1e-12 relative to the largest
+    load; the coil field's cache filled eagerly first, as the compiled rollout's guard requires)."""
+    from physics.elastic import relative_cayley
+    sc = get_scene(name)
+    sim = sc.make_integrator(stability="off")
+    st = sc.initial_state(sim)
+    args = (st.p, st.v + 0.01, st.R, st.pi, relative_cayley(st.R))
+    graphs = []
+
+    def count(gm, _):
+        graphs.append(gm)
+        return gm.forward
+    torch._dynamo.reset()  # the code object is shared by every scene's integrator: each test compiles it afresh
+    traced = torch.compile(sim.external_loads, backend=count)  # a graph break or a recompile: a second graph
+    times = torch.linspace(0.0, sc.duration, 13, dtype=torch.float64)[1:]
+    for t in times:
+        want = sim.external_loads(t, *args)
+        got = traced(t, *args)
+        scale = max(float(w.abs().max()) for w in want)
+        for g, w in zip(got, want):
+            torch.testing.assert_close(g, w, rtol=0, atol=1e-12 * scale)
+    assert len(graphs) == 1
+
+
 def test_make_integrator_overrides_and_default_stability_check():
     sc = get_scene("pdms_inplane")
     integ = sc.make_integrator(dtype=torch.float32, dt=4e-5)
