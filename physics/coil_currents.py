@@ -29,12 +29,14 @@ the compiled rollout refreshes the maps exactly where the eager one does.
 from __future__ import annotations
 
 import bisect
+import contextlib
 import math
 
 import torch
 from torch import Tensor
 
 from .magnetics.dipole import dipole_torque, force_from_gradient
+from .programs import is_tracing
 
 __all__ = ["MinJerkCurrents", "SinusoidCurrents", "BatchedCurrents", "CoilField", "min_jerk"]
 
@@ -87,7 +89,7 @@ class MinJerkCurrents:
         self._move_length = torch.tensor(self.moves, dtype=_F64)
 
     def __call__(self, t) -> Tensor:
-        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): every move's clamped quintic, no branch
+        if is_tracing():  # traced (LGVI.compiled_rollout): every move's clamped quintic, no branch
             s = min_jerk((t - self._move_start.to(t)) / self._move_length.to(t))
             return self.setpoints[0].to(t) + s @ self.setpoints.diff(dim=0).to(t)
         t = float(t)
@@ -122,7 +124,7 @@ class SinusoidCurrents:
         self.ramp = float(ramp)
 
     def __call__(self, t) -> Tensor:
-        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
+        if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
             w = torch.sin(2 * math.pi * self.frequencies[:, None].to(t) * t + self.phases.to(t))
             return min_jerk(t / self.ramp) * (self.amplitudes.to(t) * w).sum(0)
         t = float(t)
@@ -164,7 +166,7 @@ class CoilField:
         return CoilField(self.emns, self.currents, self.tol)
 
     def _maps(self, t: float, x: Tensor):
-        if torch.compiler.is_compiling():  # a compiled block of LGVI steps: the kept maps (block_ready, drift)
+        if is_tracing():  # a compiled block of LGVI steps: the kept maps (block_ready, drift)
             return self._beta + (self._grad * (x - self._x0)[..., :, None, None, :]).sum(-1), self._grad
         if t < self._t or self._x0 is None or self._x0.shape != x.shape or self._x0.dtype != x.dtype:
             self._clear()
@@ -178,7 +180,7 @@ class CoilField:
 
     def field_and_gradient(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
         I = torch.as_tensor(self.currents(t), dtype=positions.dtype, device=positions.device)
-        beta, grad = self._maps(t if torch.compiler.is_compiling() else float(t), positions)
+        beta, grad = self._maps(t if is_tracing() else float(t), positions)
         B = (beta * I[..., None, :, None]).sum(-2)
         dB = (grad * I[..., None, :, None, None]).sum(-3)
         return B, dB
@@ -203,6 +205,20 @@ class CoilField:
     def block_done(self, t: float):
         """A compiled block's last evaluation was at time ``t``."""
         self._t = float(t)
+
+    def cache(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The kept maps: where they were evaluated, the maps and their gradients (inputs of a compiled program)."""
+        return self._x0, self._beta, self._grad
+
+    @contextlib.contextmanager
+    def cached(self, cache: tuple[Tensor, Tensor, Tensor]):
+        """Within, the kept maps are ``cache`` (a program's traced inputs, so that the program reads them)."""
+        old = self.cache()
+        self._x0, self._beta, self._grad = cache
+        try:
+            yield
+        finally:
+            self._x0, self._beta, self._grad = old
 
     def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
         B, dB = self.field_and_gradient(t, positions)

@@ -19,6 +19,7 @@ gravity, user node wrenches, magnets in a field (:mod:`physics.loads`) and visco
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
 from .lie import mtm3, mtv3, mv3
 from .loads import Loads, magnet_node_loads, magnet_positions
+from .programs import compile_program, tracing
 from .rod import Rod, RodParams
 
 __all__ = ["Boundary", "LGVIState", "Trajectory", "LGVI", "solve_cayley"]
@@ -309,49 +311,45 @@ class LGVI:
     # ------------------------------------------------------------------ compiled fused steps
     def compiled_rollout(self, state: LGVIState, n_steps: int, steps_per_call: int = 4,
                          newton_iters: int = 2, record_every: int | None = None):
-        """Advance with ``torch.compile`` fusing ``steps_per_call`` steps per call (fixed Newton
-        count: from the start ``u / 2J`` two iterations reach round-off for rotations below ~1e-3 rad
-        per step). Finiteness and the Newton residual are checked after each call; a failing call is
-        replayed eagerly to report the exact step. Returns ``(state, positions (..., T, n, 3))``
-        with positions recorded every ``record_every`` calls' worth of steps (None: final only).
-        The first call compiles (seconds); time it separately.
+        """Advance with ``steps_per_call`` steps fused into one compiled program (fixed Newton count: from the
+        start ``u / 2J`` two iterations reach round-off for rotations below ~1e-3 rad per step). Finiteness and the
+        Newton residual are checked after each call; a failing call is replayed eagerly to report the exact step.
+        Returns ``(state, positions (..., T, n, 3))`` with positions recorded every ``record_every`` calls' worth
+        of steps (None: final only). The first call for a batch shape compiles (seconds); time it separately.
 
-        A field hook that keeps a cache between evaluations (``block_ready``, ``drift``, ``tol`` and
-        ``block_done``, as :class:`physics.coil_currents.CoilField`) runs traced on its cache: a call is kept
-        only if the hook was ready before it and its drift stayed within ``tol`` at every step, else the block
-        is replayed eagerly (where the hook refreshes its cache), so the cache is refreshed at the same steps
-        as in the eager rollout. ``self.eager_blocks`` counts the blocks so replayed in the last call.
+        On the CPU the program is compiled ahead of time for the state's shapes (``make_fx`` and inductor,
+        :func:`physics.programs.compile_program`: a call costs a few microseconds and one allocation, where a
+        ``torch.compile``'d call costs tens and allocates every intermediate buffer); on another device, or where
+        the loads cannot be traced into a program of fixed shapes (a branch on the data), ``torch.compile`` (with
+        a warning naming why). The loads are traced with :func:`physics.programs.is_tracing` True: time-dependent
+        loads take their tensor forms.
+
+        A field hook that keeps a cache between evaluations (``block_ready``, ``drift``, ``tol``, ``block_done``,
+        ``cache`` and ``cached``, as :class:`physics.coil_currents.CoilField`) runs traced on its cache, an input
+        of each call: a call is kept only if the hook was ready before it and its drift stayed within ``tol`` at
+        every step, else the block is replayed eagerly (where the hook refreshes its cache), so the cache is
+        refreshed at the same steps as in the eager rollout. ``self.eager_blocks`` counts the blocks so replayed in
+        the last call.
         """
         if n_steps % steps_per_call:
             raise ValueError(f"compiled_rollout: n_steps={n_steps} must be a multiple of steps_per_call={steps_per_call}")
-        field = self.loads.field if self._has_magnets else None
-        guarded = hasattr(field, "drift")
-        fn = self._compiled.get((steps_per_call, newton_iters))
-        if fn is None:
-            def fused(t, p, v, R, pi):
-                res_max = torch.zeros((), dtype=p.dtype, device=p.device)
-                drift = torch.zeros((), dtype=p.dtype, device=p.device)
-                for _ in range(steps_per_call):
-                    if guarded:  # where this step evaluates the field
-                        drift = torch.maximum(drift, field.drift(magnet_positions(p, self.params)))
-                    t, p, v, R, pi, _, res = self._advance(t, p, v, R, pi, newton_iters, check=False)
-                    res_max = torch.maximum(res_max, res.amax())
-                return t, p, v, R, pi, res_max, drift
-            fn = torch.compile(fused, dynamic=False, fullgraph=False)
-            self._compiled[(steps_per_call, newton_iters)] = fn
+        field = self.loads.field if self._has_magnets and hasattr(self.loads.field, "drift") else None
         t = self._tensor_time(state.t)
         p, v, R, pi = state.p, state.v, state.R, state.pi
         rec = [p] if record_every else None
         tol = self._residual_limit()
         self.eager_blocks = 0
+        fn = None
         for c in range(n_steps // steps_per_call):
             good = LGVIState(state.t + c * steps_per_call * self.dt, p, v, R, pi, state.step + c * steps_per_call)
             until = good.step + steps_per_call
-            if guarded and not field.block_ready(good.t, magnet_positions(p, self.params)):
+            if field is not None and not field.block_ready(good.t, magnet_positions(p, self.params)):
                 out = None
             else:
+                if fn is None:  # built once the field's cache exists (an input of the program)
+                    fn = self._fused_program((t, p, v, R, pi), steps_per_call, newton_iters, field)
                 out = fn(t, p, v, R, pi)
-                if guarded and float(out[6]) > field.tol:
+                if field is not None and float(out[6]) > field.tol:
                     out = None
             if out is None:  # the hook would refresh its cache within the block: step it eagerly
                 new = self._replay(good, until)
@@ -363,12 +361,49 @@ class LGVI:
                     self._replay(good, until)
                     raise SolverError("compiled rollout failed but the eager replay did not",
                                       step=good.step, time=good.t)
-                if guarded:
+                if field is not None:
                     field.block_done(good.t + (steps_per_call - 1) * self.dt)
             if record_every and (c + 1) % record_every == 0:
                 rec.append(p)
         out = LGVIState(state.t + n_steps * self.dt, p, v, R, pi, state.step + n_steps)
         return out, (torch.stack(rec, -3) if record_every else None)
+
+    def _fused_program(self, inputs: tuple[Tensor, ...], steps: int, newton_iters: int, field):
+        """``fn(t, p, v, R, pi) -> (t, p, v, R, pi, largest Newton residual, largest field drift)`` after ``steps``
+        steps, compiled for the shapes, dtype and device of ``inputs`` (these five; kept per key)."""
+        p = inputs[1]
+        key = (steps, newton_iters, tuple(p.shape), p.dtype, p.device)
+        fn = self._compiled.get(key)
+        if fn is not None:
+            return fn
+
+        def fused(t, p, v, R, pi):
+            res_max = torch.zeros((), dtype=p.dtype, device=p.device)
+            drift = torch.zeros((), dtype=p.dtype, device=p.device)
+            for _ in range(steps):
+                if field is not None:  # where this step evaluates the field
+                    drift = torch.maximum(drift, field.drift(magnet_positions(p, self.params)))
+                t, p, v, R, pi, _, res = self._advance(t, p, v, R, pi, newton_iters, check=False)
+                res_max = torch.maximum(res_max, res.amax())
+            return t, p, v, R, pi, res_max, drift
+        fn = None
+        if p.device.type == "cpu":
+            def traced(t, p, v, R, pi, *cache):
+                with field.cached(cache) if field is not None else contextlib.nullcontext():
+                    return fused(t, p, v, R, pi)
+            cache = (lambda: field.cache()) if field is not None else (lambda: ())  # noqa: E731
+            try:
+                with tracing():
+                    prog = compile_program(traced, (*(x.contiguous() for x in inputs), *cache()), direct=True)
+                fn = lambda *s: prog(*(x.contiguous() for x in s), *cache())  # noqa: E731
+            except Exception as err:  # noqa: BLE001 - a load that cannot be traced for fixed shapes
+                warnings.warn(f"compiled_rollout: the loads could not be traced into a program ({type(err).__name__}: "
+                              f"{str(err).splitlines()[0] if str(err) else ''}); using torch.compile",
+                              RuntimeWarning, stacklevel=3)
+        if fn is None:
+            fn = torch.compile(fused, dynamic=False, fullgraph=False)
+        self._compiled[key] = fn
+        return fn
 
     def _residual_limit(self) -> float:
         """Largest Newton residual accepted before a step counts as not converged."""

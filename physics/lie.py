@@ -16,6 +16,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .programs import is_tracing
+
 __all__ = [
     "hat", "vee", "skew_vee", "so3_exp", "so3_log", "cay", "cay_inv", "dcay_inv",
     "quat_to_matrix", "matrix_to_quat", "quat_normalize", "rot_x", "rot_y", "rot_z",
@@ -186,20 +188,20 @@ def rot_z(theta, dtype=None, device=None) -> Tensor:
 # they are written as broadcasts, which fuse, where a matmul of 3x3 blocks is an unfused call.
 def mtm3(A: Tensor, B: Tensor) -> Tensor:
     """A^T @ B for (..., 3, 3)."""
-    if torch.compiler.is_compiling():
+    if is_tracing():
         return (A.unsqueeze(-1) * B.unsqueeze(-2)).sum(-3)
     return A.transpose(-1, -2) @ B
 
 
 def mv3(A: Tensor, v: Tensor) -> Tensor:
     """A @ v for (..., 3, 3) and (..., 3)."""
-    if torch.compiler.is_compiling():
+    if is_tracing():
         return (A * v.unsqueeze(-2)).sum(-1)
     return (A @ v.unsqueeze(-1)).squeeze(-1)
 
 
 def mtv3(A: Tensor, v: Tensor) -> Tensor:
     """A^T @ v for (..., 3, 3) and (..., 3)."""
-    if torch.compiler.is_compiling():
+    if is_tracing():
         return (A * v.unsqueeze(-1)).sum(-2)
     return (v.unsqueeze(-2) @ A).squeeze(-2)

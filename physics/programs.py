@@ -18,7 +18,26 @@ from unittest import mock
 import torch
 from torch import Tensor
 
-__all__ = ["compile_program"]
+__all__ = ["compile_program", "is_tracing", "tracing"]
+
+_TRACING = [False]
+
+
+def is_tracing() -> bool:
+    """Whether code runs traced for a compiled program: under ``torch.compile``, or within :func:`tracing` (a
+    program traced by ``make_fx``, :func:`compile_program`). Time-dependent loads take their tensor forms then (no
+    branch on the time), and the small products of :mod:`physics.lie` their fusable ones."""
+    return _TRACING[0] or torch.compiler.is_compiling()
+
+
+@contextlib.contextmanager
+def tracing():
+    """:func:`is_tracing` is True within (for the LGVI's programs, :meth:`physics.lgvi.LGVI.compiled_rollout`)."""
+    old, _TRACING[0] = _TRACING[0], True
+    try:
+        yield
+    finally:
+        _TRACING[0] = old
 
 
 def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool = False,

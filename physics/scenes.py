@@ -31,6 +31,7 @@ import math
 import torch
 
 from .loads import Loads, UniformField
+from .programs import is_tracing
 from .rod import CircularSection, Magnet, Material, Rod, SquareSection
 from .scene import G_EARTH, Scene, dipole_moment, table_to_si
 from .shapes import bent_cantilever, cantilever_rotation_for_offset
@@ -95,7 +96,7 @@ class RotatingField:
         self.e_a, self.e_b = torch.tensor(e_a, dtype=torch.float64), torch.tensor(e_b, dtype=torch.float64)
 
     def __call__(self, t) -> torch.Tensor:
-        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
+        if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
             w = 2 * math.pi * self.frequency * t
             return self.static.to(t) + self.amplitude * (torch.cos(w) * self.e_a.to(t) + torch.sin(w) * self.e_b.to(t))
         w = 2 * math.pi * self.frequency * float(t)  # t: float or 0-d tensor
@@ -111,7 +112,7 @@ class SweptField:
         self.e_a, self.e_b = torch.tensor(e_a, dtype=torch.float64), torch.tensor(e_b, dtype=torch.float64)
 
     def __call__(self, t) -> torch.Tensor:
-        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
+        if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
             x = (t / self.period).clamp(0.0, 1.0)
             phi = self.phi_max * torch.sin(math.pi * x) ** 2
             return (self.b0 + (self.b1 - self.b0) * x) * (torch.cos(phi) * self.e_a.to(t) + torch.sin(phi) * self.e_b.to(t))

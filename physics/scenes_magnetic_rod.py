@@ -55,6 +55,7 @@ import torch
 from .coil_currents import CoilField, MinJerkCurrents, SinusoidCurrents, min_jerk
 from .loads import Loads
 from .magnetics.emns import six_coil_emns
+from .programs import is_tracing
 from .rod import Magnet, Rod, SquareSection
 from .scene import G_EARTH, Scene, dipole_moment
 from .scenes_cosserat import BR_N42, BR_N45, NDFEB, PMC770
@@ -290,7 +291,7 @@ class PlanarFieldCurrents:
         return b * math.cos(a), b * math.sin(a)
 
     def __call__(self, t) -> torch.Tensor:
-        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
+        if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
             b0, b1, f1, p1, a0, f2, p2, a1, f3, p3, ramp = self.params
             b = min_jerk(t / ramp) * (b0 + b1 * torch.sin(2 * math.pi * f1 * t + p1))
             a = a0 * torch.sin(2 * math.pi * f2 * t + p2) + a1 * torch.sin(2 * math.pi * f3 * t + p3)

@@ -39,6 +39,7 @@ from dataclasses import replace
 import torch
 
 from .loads import Loads
+from .programs import is_tracing
 from .rod import CircularSection, Material, Rod
 from .scene import Scene
 from .shapes import circular_arc, ellipse_loop, ellipse_perimeter
@@ -116,7 +117,7 @@ class SquareTipForce:
         return first + s @ move, (dds / length**2) @ move
 
     def __call__(self, t) -> torch.Tensor:
-        if torch.compiler.is_compiling():
+        if is_tracing():
             x, a = self.desired_traced(t)
             return (self._tip.to(x) * (self.k * x + self.m * a)[:, None, None]).sum(0)
         (x, y), (ax, ay) = self.desired(t)
@@ -141,7 +142,7 @@ class NodePulse:
         self._on_node[node] = 1.0
 
     def __call__(self, t):
-        if torch.compiler.is_compiling():  # traced (LGVI.compiled_rollout): no branch on the time, zero outside
+        if is_tracing():  # traced (LGVI.compiled_rollout): no branch on the time, zero outside
             on = ((t >= self.t0) & (t < self.t1)).to(torch.float64)
             scale = on * torch.cos(math.pi * t) if self.shape == "cos_pi_t" else on
             return self._on_node.to(t) * (self.vector.to(t) * scale)

@@ -334,6 +334,20 @@ def test_compiled_rollout_matches_eager():
     assert rec.shape == (5, rod.n_nodes, 3)
 
 
+def test_compiled_rollout_falls_back_to_torch_compile_for_untraceable_loads():
+    """A force that branches on the time as a Python number cannot be traced into a program of fixed shapes: the
+    compiled rollout says so in a warning and runs it by torch.compile instead, equal to the eager rollout."""
+    rod = pdms_rod(4)
+    tip = torch.zeros(rod.n_nodes, 3, dtype=D)
+    tip[-1, 0] = 1e-3
+    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(force=lambda t: tip if float(t) < 4 * safe_dt(rod) else None))
+    s0 = sim.initial_state()
+    eager, _ = sim.simulate(s0, n_steps=8, record_every=8)
+    with pytest.warns(RuntimeWarning, match="could not be traced into a program"):
+        comp, _ = sim.compiled_rollout(s0, n_steps=8, steps_per_call=2)
+    assert torch.allclose(comp.p, eager.p, atol=1e-13) and float((eager.p - s0.p).abs().max()) > 1e-9
+
+
 def test_undamped_motion_is_time_reversible():
     """What the surrogates' --time-reversal relies on: the LGVI's frames played backwards are an LGVI
     trajectory. From step N, with the velocity and body momentum of the reversed motion (the previous
