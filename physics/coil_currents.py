@@ -20,11 +20,12 @@ here ~0.1 ms). The cache is the only state: it is dropped when the hook is calle
 time than before or with another batch shape (a new run), and :meth:`CoilField.fresh` gives an
 independent copy, so that a run's result does not depend on what was evaluated before it.
 
-The profiles and the hook are traceable: while ``torch.compile`` traces them (the LGVI's compiled blocks of steps,
-:meth:`physics.lgvi.LGVI.compiled_rollout`) a profile is evaluated in tensor operations at a 0-d tensor time and the
-hook extrapolates from the kept maps; the LGVI keeps a block only if step-by-step evaluation would have kept the
-maps throughout (:meth:`CoilField.block_ready`, :meth:`CoilField.drift`) and replays it eagerly otherwise, so that
-the compiled rollout refreshes the maps exactly where the eager one does.
+The profiles and the hook are traceable: while traced for a compiled program (:func:`physics.programs.is_tracing`:
+the LGVI's compiled blocks of steps, :meth:`physics.lgvi.LGVI.compiled_rollout`) a profile is evaluated in tensor
+operations at a 0-d tensor time and the hook extrapolates from the kept maps, which are the program's inputs
+(:meth:`CoilField.cache`, :meth:`CoilField.cached`); the LGVI keeps a block only if step-by-step evaluation would have
+kept the maps throughout (:meth:`CoilField.block_ready`, :meth:`CoilField.drift`) and replays it eagerly otherwise,
+so that the compiled rollout refreshes the maps exactly where the eager one does.
 """
 from __future__ import annotations
 

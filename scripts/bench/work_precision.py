@@ -94,10 +94,10 @@ def physics_runner(scene, delta: float, compiled: bool):
 def timed_rows(rows: dict, blocks: dict, rounds: int, notes: dict) -> dict:
     """``{key: (positions of the first timed run, walls, the first run's wall)}``. The ``rows`` (runners) run once
     untimed (warm-up; the surrogates' programs are compiled ahead of time), then in ``rounds`` interleaved rounds;
-    each of the ``blocks`` (a compiled LGVI: a factory of its runner) compiles in a fresh dynamo cache and runs its
-    rounds in a row (torch.compile caches a function's programs per code object, so the sweep's LGVIs would evict
-    one another, and a force that breaks the graph recompiles its tail per value up to the cache's limit). A run
-    that fails (:class:`physics.SolverError`) is noted and its row dropped."""
+    each of the ``blocks`` (a compiled LGVI: a factory of its runner) compiles its own program (ahead of time on the
+    CPU; where it falls back to torch.compile, in a fresh dynamo cache, which caches a function's programs per code
+    object, so the sweep's LGVIs would evict one another) and runs its rounds in a row. A run that fails
+    (:class:`physics.SolverError`) is noted and its row dropped."""
     out = {}
     for k, run in rows.items():
         t0 = time.perf_counter()
