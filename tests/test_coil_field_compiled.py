@@ -1,4 +1,4 @@
-"""The coil currents and the cached coil field under ``torch.compile``: the magnetic rod's compiled LGVI."""
+"""The coil currents and the cached coil field traced for compiled programs: the magnetic rod's compiled LGVI."""
 from __future__ import annotations
 
 import math
@@ -8,13 +8,14 @@ import pytest
 import torch
 
 from physics.coil_currents import BatchedCurrents, CoilField, MinJerkCurrents
+from physics.programs import tracing
 from physics.scenes import get_scene
 from physics.scenes_magnetic_rod import eMNS, heldout_currents, planar_heldout_currents, printed_currents
 
 F64 = torch.float64
 
 
-def test_current_profiles_traced_equal_eager(monkeypatch):
+def test_current_profiles_traced_equal_eager():
     """While traced, each profile is evaluated in tensor operations (every move's clamped quintic at once, the
     sinusoids at a tensor time); it equals the eager evaluation at and between the set-point moves' knots and after
     the end (1e-12 A, measured ~1e-15), and the printed profile compiles with no graph break (every scene's loads:
@@ -27,13 +28,12 @@ def test_current_profiles_traced_equal_eager(monkeypatch):
     times = torch.cat([torch.linspace(0.0, printed.duration + 2.0, 301, dtype=F64), knots, knots + 1e-3,
                        knots - 1e-3])
     eager = {k: [p(float(t)) for t in times] for k, p in profiles.items()}
-    monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
-    for k, p in profiles.items():
-        for t, want in zip(times, eager[k]):
-            got = p(t)
-            assert got.shape == want.shape and float((got - want).abs().max()) < 1e-12, (k, float(t))
+    with tracing():
+        for k, p in profiles.items():
+            for t, want in zip(times, eager[k]):
+                got = p(t)
+                assert got.shape == want.shape and float((got - want).abs().max()) < 1e-12, (k, float(t))
     assert float(torch.stack(eager["printed"]).abs().max()) > 1.0
-    monkeypatch.undo()
     fn = torch.compile(lambda t: printed(t), backend="eager", fullgraph=True)
     t = torch.tensor(2.3, dtype=F64)
     assert torch.allclose(fn(t), printed(2.3), rtol=0, atol=1e-12)

@@ -126,7 +126,7 @@ def main(argv=None):
             res["closed_loop_compile_s"] = time.perf_counter() - t0
             sur["closed_loop_compiled"] = lambda: run(compiled, short)[1] / dur
     lgvi["eager"] = lgvi_blocks(scene, lgvi_steps, compiled=False)[0]
-    if a.compile:  # the LGVI's own compiled path (torch.compile, 4 steps a call)
+    if a.compile:  # the LGVI's own compiled path (LGVI.compiled_rollout, 4 steps a call)
         block, res["lgvi_compile_s"], compiled_sim = lgvi_blocks(scene, lgvi_steps, compiled=True)
         eager_blocks = []
 
