@@ -343,7 +343,7 @@ class LGVI:
         for c in range(n_steps // steps_per_call):
             good = LGVIState(state.t + c * steps_per_call * self.dt, p, v, R, pi, state.step + c * steps_per_call)
             until = good.step + steps_per_call
-            if field is not None and not field.block_ready(good.t, magnet_positions(p, self.params)):
+            if field is not None and not field.block_ready(good.t, p):
                 out = None
             else:
                 if fn is None:  # built once the field's cache exists (an input of the program)
