@@ -109,6 +109,8 @@ class Args:
     keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)")
     threads: int = opt(2, "torch CPU threads")
     data_dir: str = opt("data", "where datasets and the LGVI runs of the evaluated scenes are generated and cached")
+    compile_data: bool = opt(False, "generate a missing dataset with the LGVI's compiled rollout (its program compiled "
+                                    "ahead of time; equal to the eager LGVI to round-off; not for the magnetic rod)")
     out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)")
     log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints")
     resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues")
@@ -272,9 +274,10 @@ def main(argv=None):
                          "given, not computed from the pose)")
     init = load_init(task, a) if a.init_from else None
     t0 = time.perf_counter()
-    data = cached_dataset(task, a.variants, a.seed, a.data_dir, a.duration or None)
+    data = cached_dataset(task, a.variants, a.seed, a.data_dir, a.duration or None, compile=a.compile_data)
     # fresh validation variants: the generator's first variant is the printed scene, left out of validation
-    val_data = cached_dataset(task, a.val_fresh + 1, a.val_seed, a.data_dir, a.duration or None) if a.val_fresh else None
+    val_data = cached_dataset(task, a.val_fresh + 1, a.val_seed, a.data_dir, a.duration or None,
+                              compile=a.compile_data) if a.val_fresh else None
     t_data = time.perf_counter() - t0
     # a task with a wrench model of its own (the magnetic rod) is evaluated in closed loop, so its selection
     # rollout (val_rollout_mm) runs in closed loop too, whether or not training does (--closed-loop)

@@ -60,6 +60,18 @@ def test_bench_lgvi_quick(tmp_path):
     assert res["single_rod_us_per_step"] > 0 and res["tip_diff_vs_pyelastica_at_0.1s_pct_L"] < 10
 
 
+def test_bench_dataset_quick(tmp_path):
+    """The dataset-generation bench times the eager and the compiled LGVI on the same batch and finds their runs
+    equal to round-off (the compiled rollout's fixed Newton count)."""
+    res = run_script([str(ROOT / "scripts/bench/dataset.py"), "--quick", "--task", "ellipse", "--variants", "2"],
+                     tmp_path)
+    assert res["variants"] == 2 and res["duration_s"] == pytest.approx(0.02) and res["threads"] == 1
+    assert res["eager_s"] > 0 and res["compiled_s"] > 0 and res["compile_s"] > 0
+    assert res["speedup_compiled"] == pytest.approx(res["eager_s"] / res["compiled_s"])
+    assert res["max_diff_m"] < 1e-12 and isinstance(res["float32_identical"], bool)
+    script_fails([str(ROOT / "scripts/bench/dataset.py"), "--task", "magnetic_rod"], tmp_path, "invalid choice")
+
+
 def test_convergence_report_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/report_lgvi_convergence.py"), "--quick", "--out", "report.md"], tmp_path)
     assert (tmp_path / "report.md").exists()

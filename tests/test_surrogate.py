@@ -67,6 +67,29 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
         load_dataset(tmp_path / "tampered.pt", task="ellipse")
 
 
+def test_dataset_by_the_compiled_lgvi_equals_the_eager_one(tiny, tmp_path):
+    """``generate_dataset(..., compile=True)`` (the LGVI's compiled rollout: the variants' pulses traced as one batched
+    force) gives the eager dataset to float32 round-off; the batched force traced equals the eager one, off and on."""
+    from cmlearn.data import simulate_task
+    from physics.programs import tracing
+    task = get_task("semicircle")
+    var = task.variants(replace(task.base_scene(), duration=0.3), 3, 1)
+    for t in (0.0, 0.05, 0.12, 0.15, 0.18, 0.29, 0.6, 1.7):
+        eager = var["force"](torch.tensor(t, dtype=torch.float64))
+        with tracing():
+            traced = var["force"](torch.tensor(t, dtype=torch.float64))
+        torch.testing.assert_close(traced, eager, rtol=0, atol=0)
+    assert float(var["force"](torch.tensor(0.15, dtype=torch.float64)).abs().amax((-1, -2)).min()) > 0  # all on
+    meta = generate_dataset("semicircle", 3, seed=1, out=tmp_path / "c.pt", duration=0.3, compile=True)
+    comp = load_dataset(tmp_path / "c.pt", task="semicircle")
+    assert meta["lgvi_compiled"] and not tiny["meta"]["lgvi_compiled"]
+    assert float((comp["positions"] - tiny["positions"]).abs().max()) <= 6e-8  # 2 float32 ulps at 0.3 m
+    assert torch.equal(comp["wrench"], tiny["wrench"])
+    assert float((tiny["positions"][1:, -1] - tiny["positions"][1:, 0]).abs().max()) > 1e-4  # the pulses moved the rod
+    with pytest.raises(ValueError, match="compile"):
+        simulate_task("magnetic_rod", 2, 0, 0.1, compile=True)
+
+
 def test_cached_dataset_is_regenerated_when_its_task_changed_step(tmp_path, capsys):
     """A cached file sampled at another surrogate step (or for another node set) is not served to the task."""
     from dataclasses import replace
@@ -1137,6 +1160,9 @@ def test_compare_compiled_equals_eager_and_times_its_compile_apart(monkeypatch, 
     eager = compare_scene("semicircle", duration=0.2)
     comp = compare_scene("semicircle", duration=0.2, compile=True)
     assert not eager["surrogate_compiled"] and comp["surrogate_compiled"] and comp["surrogate_compile_s"] > 0
+    # the LGVI compiled too, timed apart, within round-off of the eager reference the errors are against
+    assert "lgvi_compiled_wall_s" not in eager and comp["lgvi_compile_s"] > 0 and comp["lgvi_compiled_diff_mm"] < 1e-9
+    assert comp["speedup_vs_compiled_lgvi"] == pytest.approx(comp["lgvi_compiled_wall_s"] / comp["surrogate_wall_s"])
     for label, node in eager["nodes"].items():
         for ax in "xyz":
             assert comp["nodes"][label]["errors"][ax]["max_mm"] == pytest.approx(node["errors"][ax]["max_mm"], abs=1e-3)

@@ -25,7 +25,7 @@ from cmlearn.io import save_torch_atomic
 from .tasks import SurrogateTask, get_task
 
 __all__ = ["simulate_task", "generate_dataset", "load_dataset", "cached_dataset", "data_hash", "dataset_path",
-           "scene_rollout", "reference_rollout"]
+           "lgvi_frames", "scene_rollout", "reference_rollout"]
 
 
 def dataset_path(data_dir: str | Path, task: str, variants: int, seed: int, duration: float | None = None) -> Path:
@@ -54,16 +54,37 @@ def _midpoint_wrench(force, task: SurrogateTask, times, n_variants: int):
     return W
 
 
-def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", duration=None):
+def lgvi_frames(sim, state, n_frames: int, every: int, compile: bool = False) -> tuple[torch.Tensor, float, float]:
+    """Node positions (..., n_frames, n, 3) of the LGVI ``sim`` every ``every`` steps from ``state`` (the first frame),
+    its wall time, and the compile time (0 eagerly). With ``compile`` the steps run in
+    :meth:`physics.LGVI.compiled_rollout` (as many a call as divide ``every``, up to 4), its program built by an
+    untimed first call from ``state``; it equals the eager run to round-off (its fixed Newton count)."""
+    n = (n_frames - 1) * every
+    compiled = 0.0
+    if compile:
+        spc = max(k for k in (1, 2, 4) if every % k == 0)
+        t0 = time.perf_counter()
+        sim.compiled_rollout(state, n_steps=spc, steps_per_call=spc)
+        compiled = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        _, p = sim.compiled_rollout(state, n_steps=n, steps_per_call=spc, record_every=every // spc)
+    else:
+        t0 = time.perf_counter()
+        p = sim.simulate(state, n_steps=n, record_every=every)[1].p
+    return p, time.perf_counter() - t0, compiled
+
+
+def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", duration=None, compile: bool = False):
     """Run the LGVI on ``scene`` (or a batch of initial shapes / a batched force) and return the
     tracked-node positions (..., T, n_tracked, 3) every ``delta``, the wrench inputs and the wall time. A task
     with a module of its own (the magnetic rod: tracked points rebuilt from the magnets' frames, wrench inputs
-    from the coil field) runs the scene as that module does, from the scene's own shape and loads."""
+    from the coil field) runs the scene as that module does, from the scene's own shape and loads. ``compile``:
+    the LGVI's compiled rollout (:func:`lgvi_frames`; the wall time leaves its compile out), not for such a task."""
     from dataclasses import replace
     if task.custom:
-        if p0 is not None or R0 is not None or force != "scene":
-            raise ValueError(f"scene_rollout: task {task.name!r} runs its scenes from their own shape and loads "
-                             "(p0, R0 and force are not accepted)")
+        if p0 is not None or R0 is not None or force != "scene" or compile:
+            raise ValueError(f"scene_rollout: task {task.name!r} runs its scenes from their own shape and loads, "
+                             "eagerly (p0, R0, force and compile are not accepted)")
         return task.hook("rollout")(task, scene, duration=duration)
     if force != "scene":
         scene = replace(scene, loads=replace(scene.loads, force=force))
@@ -72,10 +93,8 @@ def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", d
     state = sim.initial_state(p=cfg["p"] if p0 is None else p0, R=cfg.get("R") if R0 is None else R0)
     every = task.record_every(scene)
     n_frames = int(round((duration or scene.duration) / task.delta)) + 1
-    t0 = time.perf_counter()
-    _, traj = sim.simulate(state, n_steps=(n_frames - 1) * every, record_every=every)
-    wall = time.perf_counter() - t0
-    pos = traj.p[..., list(task.tracked), :]
+    p, wall, _ = lgvi_frames(sim, state, n_frames, every, compile)
+    pos = p[..., list(task.tracked), :]
     times = [k * task.delta for k in range(n_frames)]
     n_var = pos.shape[0] if pos.dim() == 4 else 1
     W = _midpoint_wrench(scene.loads.force, task, times, n_var)
@@ -113,40 +132,47 @@ def reference_rollout(task: SurrogateTask, name: str, duration: float | None = N
     return pos, W, wall
 
 
-def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, duration: float | None = None):
+def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, duration: float | None = None,
+                  compile: bool = False):
     """Simulate ``n_variants`` of the task's scene (variant 0 the printed scene) as one batch, for the
-    scene's duration or a shorter ``duration`` (tests)."""
+    scene's duration or a shorter ``duration`` (tests); ``compile``: the LGVI's compiled rollout
+    (:func:`lgvi_frames`), not for a task with a module of its own."""
     from dataclasses import replace
     task = get_task(task) if isinstance(task, str) else task
     if task.custom:
+        if compile:
+            raise ValueError(f"simulate_task: task {task.name!r} runs its own LGVI, eagerly (compile is not accepted)")
         return task.hook("simulate")(task, n_variants, seed, duration)
     scene = task.base_scene()
     if duration:
         scene = replace(scene, duration=duration)
     var = task.variants(scene, n_variants, seed)
     force = var["force"] if var["force"] is not None else "scene"
-    pos, W, wall = scene_rollout(task, scene, var["p"], var.get("R"), force=force)
+    pos, W, wall = scene_rollout(task, scene, var["p"], var.get("R"), force=force, compile=compile)
     return pos, W, var["info"], wall
 
 
 def generate_dataset(task: SurrogateTask | str, n_variants: int, seed: int, out: str | Path,
-                     duration: float | None = None) -> dict:
+                     duration: float | None = None, compile: bool = False) -> dict:
+    """Simulate (:func:`simulate_task`) and save the dataset at ``out``; returns its ``meta`` (``lgvi_compiled``: whether
+    ``compile`` ran the LGVI's compiled rollout, ``lgvi_wall_s`` without its compile)."""
     task = get_task(task) if isinstance(task, str) else task
-    pos, W, info, wall = simulate_task(task, n_variants, seed, duration)
+    pos, W, info, wall = simulate_task(task, n_variants, seed, duration, compile)
     positions, wrench = pos.float(), W.float()
     scene = task.base_scene()
     meta = {"task": task.name, "scene": task.scene, "seed": seed, "duration": duration or scene.duration, "n_variants": n_variants, "delta": task.delta,
             "dt": scene.dt, "tracked": list(task.tracked), "modeled": list(task.modeled),
             "anchors": list(task.anchors), "wrench_nodes": list(task.wrench_nodes), "rod_length": scene.rod.length,
-            "variants": info, "physics_version": physics.__version__, "lgvi_wall_s": wall,
+            "variants": info, "physics_version": physics.__version__, "lgvi_wall_s": wall, "lgvi_compiled": compile,
             "data_hash": data_hash(positions, wrench)}
     save_torch_atomic(out, {"positions": positions, "wrench": wrench, "meta": meta})
     return meta
 
 
 def cached_dataset(task: SurrogateTask | str, n_variants: int, seed: int, data_dir: str | Path,
-                   duration: float | None = None) -> dict:
-    """The dataset of ``task`` at :func:`dataset_path` in ``data_dir``, generated by the LGVI the first time."""
+                   duration: float | None = None, compile: bool = False) -> dict:
+    """The dataset of ``task`` at :func:`dataset_path` in ``data_dir``, generated by the LGVI the first time (with
+    ``compile``, its compiled rollout)."""
     task = get_task(task) if isinstance(task, str) else task
     path = dataset_path(data_dir, task.name, n_variants, seed, duration)
     if path.exists():
@@ -158,7 +184,7 @@ def cached_dataset(task: SurrogateTask | str, n_variants: int, seed: int, data_d
     else:
         why = "missing"
     print(f"generating {path} with the LGVI ({n_variants} variants; {why}) ...", flush=True)
-    generate_dataset(task, n_variants, seed, path, duration=duration)
+    generate_dataset(task, n_variants, seed, path, duration=duration, compile=compile)
     return load_dataset(path, task=task.name)
 
 

@@ -39,7 +39,8 @@ from typing import Callable
 import torch
 
 from physics.scene import Scene
-from physics.scenes_paper2 import SquareTipForce, _min_jerk
+from physics.programs import is_tracing
+from physics.scenes_paper2 import NodePulse, SquareTipForce, _min_jerk
 from physics.shapes import ellipse_loop
 from physics.scenes import get_scene
 
@@ -53,6 +54,8 @@ class BatchedNodeForce:
         self.fns, self.n_nodes = list(fns), n_nodes
 
     def __call__(self, t):
+        if is_tracing():  # traced (LGVI.compiled_rollout): every variant's force a tensor, no branch on the time
+            return torch.stack([fn(t) for fn in self.fns])
         out = torch.zeros(len(self.fns), self.n_nodes, 3, dtype=torch.float64)
         for v, fn in enumerate(self.fns):
             f = fn(t)
@@ -80,19 +83,6 @@ class TipPathForce(SquareTipForce):
             return super().desired_traced(t)
         (x, y), (ax, ay) = self.curve(t)
         return torch.stack((x, y)), torch.stack((ax, ay))
-
-
-def _pulse_fn(n_nodes, node, vector, t0, t1, shape):
-    vec = torch.as_tensor(vector, dtype=torch.float64)
-
-    def fn(t):
-        t = float(t)
-        if not (t0 <= t < t1):
-            return None
-        f = torch.zeros(n_nodes, 3, dtype=torch.float64)
-        f[node] = vec * (math.cos(math.pi * t) if shape == "cos_pi_t" else 1.0)
-        return f
-    return fn
 
 
 @dataclass(frozen=True)
@@ -287,7 +277,7 @@ def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -
         i0 = int(torch.randint(0, steps // 2, (), generator=g))
         i1 = int(torch.randint(min(i0 + 10, steps), steps + 1, (), generator=g))
         shape = "cos_pi_t" if float(torch.rand((), generator=g)) < 0.5 else "constant"
-        fns.append(_pulse_fn(rod.n_nodes, node, amp * d, i0 * delta, i1 * delta, shape))
+        fns.append(NodePulse(rod.n_nodes, node, (amp * d).tolist(), 1.0, i0 * delta, i1 * delta, shape))
         info.append({"direction": d.tolist(), "amplitude": amp, "t0": i0 * delta, "t1": i1 * delta, "shape": shape})
     cfg = scene.initial_configuration()
     return {"p": cfg["p"].expand(n, -1, -1), "R": cfg["R"].expand(n, -1, -1, -1),

@@ -34,6 +34,7 @@ from statistics import median
 import torch
 
 from cmlearn.data import get_task
+from cmlearn.data.generate import lgvi_frames
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import atomic_write, write_text_atomic
 from cmlearn.surrogate import Surrogate, surrogate_checkpoints
@@ -71,23 +72,18 @@ def physics_scene(scene, n_elements: int, dt: float):
 
 
 def physics_runner(scene, delta: float, compiled: bool):
-    """``run() -> (headline node positions (T, 3) every ``delta``, wall s)`` of the LGVI on ``scene`` from rest; the
-    compiled one records every call of as many steps as divide the record interval (up to 4)."""
+    """``run() -> (headline node positions (T, 3) every ``delta``, wall s)`` of the LGVI on ``scene`` from rest
+    (:func:`cmlearn.data.generate.lgvi_frames`; the first compiled run's wall includes its compile)."""
     sim = scene.make_integrator()
     cfg = scene.initial_configuration()
     start = sim.initial_state(p=cfg["p"], R=cfg.get("R"))
     every = int(round(delta / scene.dt))
-    n = int(round(scene.duration / delta)) * every
+    n_frames = int(round(scene.duration / delta)) + 1
     node = scene.nodes_of_interest[0]
-    spc = max(k for k in (1, 2, 4) if every % k == 0)
 
     def run():
-        t0 = time.perf_counter()
-        if compiled:
-            _, p = sim.compiled_rollout(start, n_steps=n, steps_per_call=spc, record_every=every // spc)
-        else:
-            p = sim.simulate(start, n_steps=n, record_every=every)[1].p
-        return p[..., node, :].double(), time.perf_counter() - t0
+        p, wall, compile_s = lgvi_frames(sim, start, n_frames, every, compiled)
+        return p[..., node, :].double(), wall + compile_s
     return run
 
 

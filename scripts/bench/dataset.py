@@ -1,0 +1,75 @@
+"""Benchmark: generating a surrogate task's training data with the LGVI, eager against its compiled rollout, same run.
+
+    python scripts/bench/dataset.py [--quick] [--task semicircle] [--variants V] [--duration S] [--threads N]
+
+The task's first ``V`` training variants (the printed scene and random ones, :func:`cmlearn.data.simulate_task`) as
+one LGVI batch for ``S`` simulated seconds, float64, CPU: eagerly (``LGVI.simulate``), as the datasets were made, and
+compiled (:meth:`physics.LGVI.compiled_rollout`, its program compiled ahead of time in an untimed first call,
+timed apart). After an untimed round, each is timed ``--rounds`` times in turn; the ratio is of the medians. Also the largest difference of
+the two runs' tracked positions (round-off: the compiled path's fixed Newton count) and whether the float32 data the
+datasets store are the same bytes. Last line: one JSON object.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from statistics import median
+
+import torch
+
+from cmlearn.data import TASKS, data_hash, simulate_task
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", default="semicircle", choices=sorted(k for k, t in TASKS.items() if not t.custom))
+    ap.add_argument("--variants", type=int, default=0, help="variants in the batch (default: the shipped model's)")
+    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (default 0.2, --quick 0.02)")
+    ap.add_argument("--rounds", type=int, default=0, help="timed runs of each (default 2, --quick 1)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args(argv)
+    if a.variants < 0 or a.duration < 0 or a.rounds < 0 or a.threads < 1:
+        raise SystemExit("--variants, --duration and --rounds must be >= 0 and --threads >= 1")
+    variants = a.variants or (3 if a.quick else {"semicircle": 96, "ellipse": 32, "square_tracking": 64}.get(a.task, 32))
+    duration = a.duration or (0.02 if a.quick else 0.2)
+    rounds = a.rounds or (1 if a.quick else 2)
+    torch.set_num_threads(a.threads)
+
+    def run(compile: bool):
+        t0 = time.perf_counter()
+        pos, W, _, wall = simulate_task(a.task, variants, 0, duration, compile=compile)
+        return pos, W, wall, time.perf_counter() - t0 - wall
+
+    runs, first = {"eager": [], "compiled": []}, {}
+    for r in range(rounds + 1):  # round 0 untimed: the compiled program's compile (timed apart), the eager warm-up
+        for mode in ("eager", "compiled"):
+            pos, W, wall, other = run(mode == "compiled")
+            if r == 0:
+                first[mode] = (pos, W, other)
+            else:
+                runs[mode].append(wall)
+    (pe, We, _), (pc, Wc, compile_s) = first["eager"], first["compiled"]
+    steps = pe.shape[-3] - 1
+    sim_s = steps * TASKS[a.task].delta
+    eager, comp = median(runs["eager"]), median(runs["compiled"])
+    diff = float((pc - pe).abs().max())
+    same = data_hash(pc.float(), Wc.float()) == data_hash(pe.float(), We.float())
+    n_nodes = pe.shape[-2]
+    print(f"{a.task}: {variants} variants x {sim_s:g} s ({pe.shape[-3]} frames of {n_nodes} tracked nodes), float64, "
+          f"{a.threads} thread(s), {platform.machine()}")
+    print(f"  eager LGVI:    {eager:.3f} s ({eager / sim_s:.3f} s per simulated second of the batch)")
+    print(f"  compiled LGVI: {comp:.3f} s ({comp / sim_s:.3f} s per simulated second; its compile {compile_s:.1f} s "
+          f"apart) -> {eager / comp:.2f}x")
+    print(f"  compiled vs eager: largest difference {diff:.2e} m; float32 data {'identical' if same else 'differ'}")
+    print(json.dumps({"task": a.task, "variants": variants, "duration_s": sim_s, "tracked_nodes": n_nodes,
+                      "threads": a.threads, "dtype": "float64", "rounds": rounds, "eager_s": eager, "compiled_s": comp,
+                      "eager_runs_s": runs["eager"], "compiled_runs_s": runs["compiled"], "compile_s": compile_s,
+                      "speedup_compiled": eager / comp, "max_diff_m": diff, "float32_identical": same,
+                      "torch": torch.__version__, "machine": platform.machine()}))
+
+
+if __name__ == "__main__":
+    main()
