@@ -4,10 +4,10 @@
 
 The task's first ``V`` training variants (the printed scene and random ones, :func:`cmlearn.data.simulate_task`) as
 one LGVI batch for ``S`` simulated seconds, float64, CPU: eagerly (``LGVI.simulate``), as the datasets were made, and
-compiled (:meth:`physics.LGVI.compiled_rollout`, its program compiled ahead of time in an untimed first call,
-timed apart). After an untimed round, each is timed ``--rounds`` times in turn; the ratio is of the medians. Also the largest difference of
-the two runs' tracked positions (round-off: the compiled path's fixed Newton count) and whether the float32 data the
-datasets store are the same bytes. Last line: one JSON object.
+compiled (:meth:`physics.LGVI.compiled_rollout`, its program compiled ahead of time in an untimed first call, timed
+apart). After an untimed round, each is timed ``--rounds`` times in turn; the ratio is of the medians. Also the
+largest difference of the two runs' tracked positions (round-off: the compiled path's fixed Newton count) and whether
+the float32 data the datasets store are the same bytes. Last line: one JSON object.
 """
 from __future__ import annotations
 
