@@ -61,15 +61,18 @@ def test_bench_lgvi_quick(tmp_path):
 
 
 def test_bench_dataset_quick(tmp_path):
-    """The dataset-generation bench times the eager and the compiled LGVI on the same batch and finds their runs
-    equal to round-off (the compiled rollout's fixed Newton count)."""
-    res = run_script([str(ROOT / "scripts/bench/dataset.py"), "--quick", "--task", "ellipse", "--variants", "2"],
-                     tmp_path)
-    assert res["variants"] == 2 and res["duration_s"] == pytest.approx(0.02) and res["threads"] == 1
-    assert res["eager_s"] > 0 and res["compiled_s"] > 0 and res["compile_s"] > 0
+    """The dataset-generation bench times the eager and the compiled LGVI on the same batch of Simulation III's pulses
+    (traced as one batched force) and finds their data equal to round-off (the compiled rollout's fixed Newton count);
+    the magnetic rod, whose data stay eager, is refused, and so is compiling its data."""
+    res = run_script([str(ROOT / "scripts/bench/dataset.py"), "--quick"], tmp_path)
+    assert res["task"] == "semicircle" and res["variants"] == 3 and res["duration_s"] == pytest.approx(0.02)
+    assert res["eager_s"] > 0 and res["compiled_s"] > 0 and res["compile_s"] > 0 and res["threads"] == 1
     assert res["speedup_compiled"] == pytest.approx(res["eager_s"] / res["compiled_s"])
     assert res["max_diff_m"] < 1e-12 and isinstance(res["float32_identical"], bool)
     script_fails([str(ROOT / "scripts/bench/dataset.py"), "--task", "magnetic_rod"], tmp_path, "invalid choice")
+    from cmlearn.data import simulate_task
+    with pytest.raises(ValueError, match="compile"):
+        simulate_task("magnetic_rod", 2, 0, 0.1, compile=True)
 
 
 def test_convergence_report_quick(tmp_path):

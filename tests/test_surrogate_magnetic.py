@@ -167,15 +167,17 @@ def test_reference_rollout_is_cached_while_it_fits(tmp_path):
 
 def test_scene_rollout_runs_the_rod_as_its_module_does():
     """The generic scene_rollout (the benchmark's) runs the magnetic rod through its own module: the markers and
-    the coil wrench, not node positions; it refuses the other shapes or forces only plain tasks take."""
+    the coil wrench, not node positions; it refuses the other shapes or forces only plain tasks take, and the compiled
+    LGVI."""
     from cmlearn.data import scene_rollout
     scene = TASK.base_scene()
     pts, W, _ = scene_rollout(TASK, scene, duration=0.04)
     ref, W_ref, _ = rollout(TASK, scene, duration=0.04)
     assert pts.shape == (int(round(0.04 / TASK.delta)) + 1, len(TASK.tracked), 3)
     assert torch.equal(pts, ref) and torch.equal(W, W_ref)
-    with pytest.raises(ValueError, match="p0, R0 and force are not accepted"):
-        scene_rollout(TASK, scene, p0=scene.initial_configuration()["p"], duration=0.04)
+    for bad in ({"p0": scene.initial_configuration()["p"]}, {"compile": True}):
+        with pytest.raises(ValueError, match="p0, R0, force and compile are not accepted"):
+            scene_rollout(TASK, scene, duration=0.04, **bad)
 
 
 def test_nudged_free_running_spreads_only_when_nudged_and_one_start_is_the_recorded_run(tmp_path):

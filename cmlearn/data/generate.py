@@ -25,7 +25,7 @@ from cmlearn.io import save_torch_atomic
 from .tasks import SurrogateTask, get_task
 
 __all__ = ["simulate_task", "generate_dataset", "load_dataset", "cached_dataset", "data_hash", "dataset_path",
-           "lgvi_frames", "scene_rollout", "reference_rollout"]
+           "lgvi_frames", "scene_integrator", "scene_rollout", "reference_rollout"]
 
 
 def dataset_path(data_dir: str | Path, task: str, variants: int, seed: int, duration: float | None = None) -> Path:
@@ -74,23 +74,29 @@ def lgvi_frames(sim, state, n_frames: int, every: int, compile: bool = False) ->
     return p, time.perf_counter() - t0, compiled
 
 
+def scene_integrator(scene, p0=None, R0=None, force="scene"):
+    """``(scene, its LGVI, the initial state)``: the scene with its force replaced by ``force`` (unless ``"scene"``),
+    started from its own shape or the batch of initial shapes ``p0``, ``R0``."""
+    from dataclasses import replace
+    if force != "scene":
+        scene = replace(scene, loads=replace(scene.loads, force=force))
+    sim = scene.make_integrator()
+    cfg = scene.initial_configuration()
+    return scene, sim, sim.initial_state(p=cfg["p"] if p0 is None else p0, R=cfg.get("R") if R0 is None else R0)
+
+
 def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", duration=None, compile: bool = False):
     """Run the LGVI on ``scene`` (or a batch of initial shapes / a batched force) and return the
     tracked-node positions (..., T, n_tracked, 3) every ``delta``, the wrench inputs and the wall time. A task
     with a module of its own (the magnetic rod: tracked points rebuilt from the magnets' frames, wrench inputs
     from the coil field) runs the scene as that module does, from the scene's own shape and loads. ``compile``:
     the LGVI's compiled rollout (:func:`lgvi_frames`; the wall time leaves its compile out), not for such a task."""
-    from dataclasses import replace
     if task.custom:
         if p0 is not None or R0 is not None or force != "scene" or compile:
             raise ValueError(f"scene_rollout: task {task.name!r} runs its scenes from their own shape and loads, "
                              "eagerly (p0, R0, force and compile are not accepted)")
         return task.hook("rollout")(task, scene, duration=duration)
-    if force != "scene":
-        scene = replace(scene, loads=replace(scene.loads, force=force))
-    sim = scene.make_integrator()
-    cfg = scene.initial_configuration()
-    state = sim.initial_state(p=cfg["p"] if p0 is None else p0, R=cfg.get("R") if R0 is None else R0)
+    scene, sim, state = scene_integrator(scene, p0, R0, force)
     every = task.record_every(scene)
     n_frames = int(round((duration or scene.duration) / task.delta)) + 1
     p, wall, _ = lgvi_frames(sim, state, n_frames, every, compile)

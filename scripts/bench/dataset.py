@@ -2,8 +2,8 @@
 
     python scripts/bench/dataset.py [--quick] [--task semicircle] [--variants V] [--duration S] [--threads N]
 
-The task's first ``V`` training variants (the printed scene and random ones, :func:`cmlearn.data.simulate_task`) as
-one LGVI batch for ``S`` simulated seconds, float64, CPU: eagerly (``LGVI.simulate``), as the datasets were made, and
+The task's first ``V`` training variants (the printed scene and random ones, as :func:`cmlearn.data.simulate_task`
+draws them) as one LGVI batch for ``S`` simulated seconds, float64, CPU: eagerly (``LGVI.simulate``), as the datasets were made, and
 compiled (:meth:`physics.LGVI.compiled_rollout`, its program compiled ahead of time in an untimed first call, timed
 apart). After an untimed round, each is timed ``--rounds`` times in turn; the ratio is of the medians. Also the
 largest difference of the two runs' tracked positions (round-off: the compiled path's fixed Newton count) and whether
@@ -14,12 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
+from dataclasses import replace
 from statistics import median
 
 import torch
 
-from cmlearn.data import TASKS, data_hash, simulate_task
+from cmlearn.data import TASKS, data_hash
+from cmlearn.data.generate import lgvi_frames, scene_integrator
 
 
 def main(argv=None):
@@ -37,26 +38,26 @@ def main(argv=None):
     duration = a.duration or (0.02 if a.quick else 0.2)
     rounds = a.rounds or (1 if a.quick else 2)
     torch.set_num_threads(a.threads)
+    task = TASKS[a.task]
+    scene = replace(task.base_scene(), duration=duration)
+    var = task.variants(scene, variants, 0)  # as simulate_task: one integrator, so the compiled program is built once
+    scene, sim, state = scene_integrator(scene, var["p"], var.get("R"),
+                                     var["force"] if var["force"] is not None else "scene")
+    every, n_frames = task.record_every(scene), int(round(duration / task.delta)) + 1
 
-    def run(compile: bool):
-        t0 = time.perf_counter()
-        pos, W, _, wall = simulate_task(a.task, variants, 0, duration, compile=compile)
-        return pos, W, wall, time.perf_counter() - t0 - wall
-
-    runs, first = {"eager": [], "compiled": []}, {}
+    runs, first, compile_s = {"eager": [], "compiled": []}, {}, 0.0
     for r in range(rounds + 1):  # round 0 untimed: the compiled program's compile (timed apart), the eager warm-up
         for mode in ("eager", "compiled"):
-            pos, W, wall, other = run(mode == "compiled")
+            p, wall, comp_s = lgvi_frames(sim, state, n_frames, every, mode == "compiled")
             if r == 0:
-                first[mode] = (pos, W, other)
+                first[mode], compile_s = p[..., list(task.tracked), :], max(compile_s, comp_s)
             else:
                 runs[mode].append(wall)
-    (pe, We, _), (pc, Wc, compile_s) = first["eager"], first["compiled"]
-    steps = pe.shape[-3] - 1
-    sim_s = steps * TASKS[a.task].delta
+    pe, pc = first["eager"], first["compiled"]
+    sim_s = (n_frames - 1) * task.delta
     eager, comp = median(runs["eager"]), median(runs["compiled"])
     diff = float((pc - pe).abs().max())
-    same = data_hash(pc.float(), Wc.float()) == data_hash(pe.float(), We.float())
+    same = data_hash(pc.float()) == data_hash(pe.float())
     n_nodes = pe.shape[-2]
     print(f"{a.task}: {variants} variants x {sim_s:g} s ({pe.shape[-3]} frames of {n_nodes} tracked nodes), float64, "
           f"{a.threads} thread(s), {platform.machine()}")
