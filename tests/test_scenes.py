@@ -285,6 +285,19 @@ def test_tip_path_forces_traced_equal_eager(monkeypatch):
             m.setattr(torch.compiler, "is_compiling", lambda: True)
             traced = torch.stack([f(torch.tensor(t, dtype=torch.float64)) for t in times])
         torch.testing.assert_close(traced, eager, rtol=0, atol=1e-15)
+    from cmlearn.data.tasks import BatchedTipPathForce
+    batch = _square_variants(square, 4, 0)["force"]  # the training paths: one tensor evaluation of all while traced
+    assert isinstance(batch, BatchedTipPathForce)
+    for t in times:
+        eager = batch(torch.tensor(t, dtype=torch.float64))
+        with monkeypatch.context() as m:
+            m.setattr(torch.compiler, "is_compiling", lambda: True)
+            traced = batch(torch.tensor(t, dtype=torch.float64))
+        torch.testing.assert_close(traced, eager, rtol=0, atol=1e-15)
+    for bad, match in (([square.loads.force, tracking_heldout_scene("circle").loads.force], "waypoints"),
+                       ([square.loads.force, SquareTipForce(get_scene("semicircle").rod, 0.05, (1.0,) * 6)], "one rod")):
+        with pytest.raises(ValueError, match=match):
+            BatchedTipPathForce(bad, square.rod.n_nodes)
     graph = torch.compile(lambda t: square.loads.force(t), backend="eager", fullgraph=True)
     torch.testing.assert_close(graph(torch.tensor(4.2, dtype=torch.float64)),
                                square.loads.force(torch.tensor(4.2, dtype=torch.float64)), rtol=0, atol=1e-15)

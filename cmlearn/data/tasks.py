@@ -44,7 +44,8 @@ from physics.scenes_paper2 import NodePulse, SquareTipForce, _min_jerk
 from physics.shapes import ellipse_loop
 from physics.scenes import get_scene
 
-__all__ = ["SurrogateTask", "TASKS", "get_task", "BatchedNodeForce", "TipPathForce"]
+__all__ = ["SurrogateTask", "TASKS", "get_task", "BatchedNodeForce", "BatchedNodePulse", "BatchedTipPathForce",
+           "TipPathForce"]
 
 
 class BatchedNodeForce:
@@ -62,6 +63,64 @@ class BatchedNodeForce:
             if f is not None:
                 out[v] = f
         return out
+
+
+class BatchedTipPathForce(BatchedNodeForce):
+    """:class:`BatchedNodeForce` of feed-forward tip forces along minimum-jerk waypoint paths (``SquareTipForce`` s and
+    :class:`TipPathForce` s through waypoints, of one rod), whose traced form evaluates all variants' segments as one
+    tensor operation (each variant's padded with segments that do not move), where stacking every variant's traced
+    force made a program many times larger (Simulation II's 48 training paths: a compile of minutes)."""
+
+    def __init__(self, fns, n_nodes: int):
+        super().__init__(fns, n_nodes)
+        if not self.fns or any(not isinstance(f, SquareTipForce) or getattr(f, "curve", None) is not None
+                               for f in self.fns):
+            raise ValueError("BatchedTipPathForce: every force must be a SquareTipForce or a TipPathForce through "
+                             "waypoints")
+        f0 = self.fns[0]
+        if any((f.k, f.m, f.n_nodes) != (f0.k, f0.m, f0.n_nodes) for f in self.fns) or f0.n_nodes != n_nodes:
+            raise ValueError("BatchedTipPathForce: the forces must act on one rod (the same stiffness, mass and nodes)")
+        S = max(len(f.durations) for f in self.fns)
+
+        def padded(a, fill):  # (S, ...) with still segments appended
+            return torch.cat((a, a.new_full((S - a.shape[0], *a.shape[1:]), fill)))
+        self._start = torch.stack([padded(f._start, 0.0) for f in self.fns])  # (V, S)
+        self._length = torch.stack([padded(f._length, 1.0) for f in self.fns])  # (V, S)
+        self._move = torch.stack([padded(f._move, 0.0) for f in self.fns])  # (V, S, 2)
+        self._first = torch.stack([f._first for f in self.fns])  # (V, 2)
+        self._tip, self.k, self.m = f0._tip, f0.k, f0.m
+
+    def __call__(self, t):
+        if not is_tracing():
+            return super().__call__(t)
+        start, length, move, first = (a.to(t) for a in (self._start, self._length, self._move, self._first))
+        s, dds = _min_jerk((t - start) / length)  # (V, S)
+        x = first + (s.unsqueeze(-1) * move).sum(-2)  # (V, 2): as SquareTipForce.desired_traced, every variant
+        a = ((dds / length**2).unsqueeze(-1) * move).sum(-2)
+        return (self._tip.to(t) * (self.k * x + self.m * a)[..., None, None]).sum(-3)  # (V, n, 3)
+
+
+class BatchedNodePulse(BatchedNodeForce):
+    """:class:`BatchedNodeForce` of :class:`~physics.scenes_paper2.NodePulse` s (Simulation III's training pulses),
+    whose traced form evaluates every variant's pulse as one tensor operation (stacking each pulse's traced force made
+    the program larger and its compile longer)."""
+
+    def __init__(self, fns, n_nodes: int):
+        super().__init__(fns, n_nodes)
+        if not self.fns or any(not isinstance(f, NodePulse) or f.n_nodes != n_nodes for f in self.fns):
+            raise ValueError(f"BatchedNodePulse: every force must be a NodePulse on {n_nodes} nodes")
+        self._t0 = torch.tensor([f.t0 for f in self.fns], dtype=torch.float64)
+        self._t1 = torch.tensor([f.t1 for f in self.fns], dtype=torch.float64)
+        self._cos = torch.tensor([f.shape == "cos_pi_t" for f in self.fns])
+        self._vector = torch.stack([f.vector for f in self.fns])  # (V, 3)
+        self._on_node = torch.stack([f._on_node for f in self.fns])  # (V, n, 1)
+
+    def __call__(self, t):
+        if not is_tracing():
+            return super().__call__(t)
+        on = ((t >= self._t0.to(t)) & (t < self._t1.to(t))).to(t.dtype)
+        scale = torch.where(self._cos.to(t.device), on * torch.cos(math.pi * t), on)  # (V,): as NodePulse's
+        return self._on_node.to(t) * (self._vector.to(t) * scale[:, None]).unsqueeze(-2)
 
 
 class TipPathForce(SquareTipForce):
@@ -226,7 +285,7 @@ def _square_variants(scene: Scene, n: int, seed: int) -> dict:
         fns.append(TipPathForce(rod, pts, dur))
         info.append({"waypoints": pts, "durations": dur})
     cfg = scene.initial_configuration()
-    return {"p": cfg["p"].expand(n, -1, -1), "R": None, "force": BatchedNodeForce(fns, rod.n_nodes),
+    return {"p": cfg["p"].expand(n, -1, -1), "R": None, "force": BatchedTipPathForce(fns, rod.n_nodes),
             "info": info}
 
 
@@ -281,7 +340,7 @@ def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -
         info.append({"direction": d.tolist(), "amplitude": amp, "t0": i0 * delta, "t1": i1 * delta, "shape": shape})
     cfg = scene.initial_configuration()
     return {"p": cfg["p"].expand(n, -1, -1), "R": cfg["R"].expand(n, -1, -1, -1),
-            "force": BatchedNodeForce(fns, rod.n_nodes), "info": info}
+            "force": BatchedNodePulse(fns, rod.n_nodes), "info": info}
 
 
 # ------------------------------------------------------------------------------ magnetic rod (Data-set IV)
