@@ -72,7 +72,7 @@ def test_training_pulses_trace_as_the_eager_batch(tiny):
     compiled rollout traces it equals the eager batch, off and on (``scripts/bench/dataset.py``'s test runs it
     compiled); the datasets record that the eager LGVI made them."""
     from physics.programs import tracing
-    from cmlearn.data.tasks import BatchedNodePulse
+    from cmlearn.data.tasks import BatchedNodeForce, BatchedNodePulse
     task = get_task("semicircle")
     var = task.variants(replace(task.base_scene(), duration=0.3), 3, 1)
     assert isinstance(var["force"], BatchedNodePulse)  # one tensor evaluation of every pulse while traced
@@ -80,9 +80,9 @@ def test_training_pulses_trace_as_the_eager_batch(tiny):
         eager = var["force"](torch.tensor(t, dtype=torch.float64))
         with tracing():
             traced = var["force"](torch.tensor(t, dtype=torch.float64))
-            each = torch.stack([f(torch.tensor(t, dtype=torch.float64)) for f in var["force"].fns])
+            each = BatchedNodeForce(var["force"].fns, var["force"].n_nodes)(torch.tensor(t, dtype=torch.float64))
         torch.testing.assert_close(traced, eager, rtol=0, atol=0)
-        torch.testing.assert_close(each, eager, rtol=0, atol=0)
+        torch.testing.assert_close(each, eager, rtol=0, atol=0)  # the generic batch: every variant's traced force
     with pytest.raises(ValueError, match="NodePulse"):
         BatchedNodePulse([var["force"].fns[0], lambda t: None], task.base_scene().rod.n_nodes)
     assert float(var["force"](torch.tensor(0.15, dtype=torch.float64)).abs().amax((-1, -2)).min()) > 0  # all on
