@@ -44,8 +44,8 @@ from .rod import CircularSection, Material, Rod
 from .scene import Scene
 from .shapes import circular_arc, ellipse_loop, ellipse_perimeter
 
-__all__ = ["BUILDERS", "on_mesh", "SquareTipForce", "NodePulse", "ellipse", "ellipse_horizontal", "square_tracking",
-           "semicircle", "semicircle_heldout"]
+__all__ = ["BUILDERS", "on_mesh", "SquareTipForce", "NodePulse", "path_traced", "pulse_traced", "ellipse",
+           "ellipse_horizontal", "square_tracking", "semicircle", "semicircle_heldout"]
 
 _SOFT = Material(E=10e6, density=1000.0, nu=0.3)
 _VERY_SOFT = Material(E=10e3, density=1000.0, nu=0.3)
@@ -56,6 +56,16 @@ def _min_jerk(x):
     """Quintic s(x) = 10x^3 - 15x^4 + 6x^5 and its second derivative on [0, 1] (``x`` a float or a tensor)."""
     x = x.clamp(0.0, 1.0) if torch.is_tensor(x) else min(max(x, 0.0), 1.0)
     return x**3 * (10 - 15 * x + 6 * x * x), x * (60 - 180 * x + 120 * x * x)
+
+
+def path_traced(t: torch.Tensor, start, length, first, move) -> tuple[torch.Tensor, torch.Tensor]:
+    """Position (..., 2) and acceleration (..., 2) at a 0-d tensor ``t`` of minimum-jerk paths given by their
+    segments' ``start`` and ``length`` (..., S) (s), first waypoint (..., 2) and segment displacements (..., S, 2), in
+    tensor operations with no branch on the time: the sum over all segments of each one's clamped quintic times its
+    displacement (a segment of zero displacement, as padding, adds nothing)."""
+    start, length, first, move = (a.to(t) for a in (start, length, first, move))
+    s, dds = _min_jerk((t - start) / length)
+    return first + (s.unsqueeze(-2) @ move).squeeze(-2), ((dds / length**2).unsqueeze(-2) @ move).squeeze(-2)
 
 
 class SquareTipForce:
@@ -112,14 +122,12 @@ class SquareTipForce:
 
     def desired_traced(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`desired` at a 0-d tensor ``t`` in tensor operations: position (2,) and acceleration (2,)."""
-        start, length, first, move = (a.to(t) for a in (self._start, self._length, self._first, self._move))
-        s, dds = _min_jerk((t - start) / length)
-        return first + s @ move, (dds / length**2) @ move
+        return path_traced(t, self._start, self._length, self._first, self._move)
 
     def __call__(self, t) -> torch.Tensor:
         if is_tracing():
             x, a = self.desired_traced(t)
-            return (self._tip.to(x) * (self.k * x + self.m * a)[:, None, None]).sum(0)
+            return (self._tip.to(x) * (self.k * x + self.m * a)[..., None, None]).sum(-3)
         (x, y), (ax, ay) = self.desired(t)
         f = torch.zeros(self.n_nodes, 3, dtype=torch.float64)
         f[-1, 0] = self.k * x + self.m * ax
@@ -143,13 +151,21 @@ class NodePulse:
 
     def __call__(self, t):
         if is_tracing():  # traced (LGVI.compiled_rollout): no branch on the time, zero outside
-            on = ((t >= self.t0) & (t < self.t1)).to(torch.float64)
-            scale = on * torch.cos(math.pi * t) if self.shape == "cos_pi_t" else on
-            return self._on_node.to(t) * (self.vector.to(t) * scale)
+            return pulse_traced(t, self.t0, self.t1, self.shape == "cos_pi_t", self.vector, self._on_node)
         t = float(t)  # float or 0-d tensor
         if not (self.t0 <= t < self.t1):
             return None
         return self._on_node * (self.vector * (math.cos(math.pi * t) if self.shape == "cos_pi_t" else 1.0))
+
+
+def pulse_traced(t: torch.Tensor, t0, t1, cos_pi_t, vector, on_node) -> torch.Tensor:
+    """Node forces (..., n, 3) of pulses ``vector`` (..., 3) on the nodes ``on_node`` (..., n, 1) (one-hot) for ``t``
+    in ``[t0, t1)`` ((...,) s), times ``cos(pi t)`` where ``cos_pi_t`` (bool, ...), at a 0-d tensor ``t`` with no
+    branch on the time."""
+    t0, t1 = (torch.as_tensor(b, dtype=t.dtype, device=t.device) for b in (t0, t1))
+    on = ((t >= t0) & (t < t1)).to(t.dtype)
+    scale = torch.where(torch.as_tensor(cos_pi_t, device=t.device), on * torch.cos(math.pi * t), on)
+    return on_node.to(t) * (vector.to(t) * scale[..., None]).unsqueeze(-2)
 
 
 # ------------------------------------------------------------------------------- Simulation I

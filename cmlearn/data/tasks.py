@@ -40,7 +40,7 @@ import torch
 
 from physics.scene import Scene
 from physics.programs import is_tracing
-from physics.scenes_paper2 import NodePulse, SquareTipForce, _min_jerk
+from physics.scenes_paper2 import NodePulse, SquareTipForce, _min_jerk, path_traced, pulse_traced
 from physics.shapes import ellipse_loop
 from physics.scenes import get_scene
 
@@ -93,11 +93,8 @@ class BatchedTipPathForce(BatchedNodeForce):
     def __call__(self, t):
         if not is_tracing():
             return super().__call__(t)
-        start, length, move, first = (a.to(t) for a in (self._start, self._length, self._move, self._first))
-        s, dds = _min_jerk((t - start) / length)  # (V, S)
-        x = first + (s.unsqueeze(-1) * move).sum(-2)  # (V, 2): as SquareTipForce.desired_traced, every variant
-        a = ((dds / length**2).unsqueeze(-1) * move).sum(-2)
-        return (self._tip.to(t) * (self.k * x + self.m * a)[..., None, None]).sum(-3)  # (V, n, 3)
+        x, a = path_traced(t, self._start, self._length, self._first, self._move)  # (V, 2) each
+        return (self._tip.to(x) * (self.k * x + self.m * a)[..., None, None]).sum(-3)  # as SquareTipForce's: (V, n, 3)
 
 
 class BatchedNodePulse(BatchedNodeForce):
@@ -118,9 +115,7 @@ class BatchedNodePulse(BatchedNodeForce):
     def __call__(self, t):
         if not is_tracing():
             return super().__call__(t)
-        on = ((t >= self._t0.to(t)) & (t < self._t1.to(t))).to(t.dtype)
-        scale = torch.where(self._cos.to(t.device), on * torch.cos(math.pi * t), on)  # (V,): as NodePulse's
-        return self._on_node.to(t) * (self._vector.to(t) * scale[:, None]).unsqueeze(-2)
+        return pulse_traced(t, self._t0, self._t1, self._cos, self._vector, self._on_node)
 
 
 class TipPathForce(SquareTipForce):
