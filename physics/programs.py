@@ -60,7 +60,9 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     with inductor's memory planning: a shared library that holds its constants and makes one allocation a call for
     its intermediate buffers (each output has its own, so that outputs kept, a rollout's frames, keep nothing else),
     run by its model runner (the JIT wrapper turns every constant, two dozen in a Simulation III step, into a tensor
-    handle at every call; ``docs/surrogates.md``, "Programs compiled ahead of time"). Its inputs' sizes and strides
+    handle at every call; ``docs/surrogates.md``, "Programs compiled ahead of time"), in a folder named for the
+    graph and its constants' values (:func:`_library_dir`: programs that differ only in their constants, two models
+    of one architecture, are two libraries). Its inputs' sizes and strides
     are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set), strides of
     size-1 dimensions included. For the small programs of a real-time step; the Cosserat solver's long programs
     keep the default path.
@@ -70,9 +72,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     0 below -87.3 and ``FLT_MAX`` above 88.7, not inf; NaN not kept) instead of Sleef's function call (1 unit).
     ``exp`` carries every sigmoid and tanh of a compiled surrogate step (``node_lstm._program_sigmoid``): the
     two-image Simulation III carried step 67.0 -> 63.8 us (``scripts/bench/surrogate_program.py``, Sleef's call 13 %
-    of the step in ``perf``). Ignored for CUDA programs (Triton's ``exp``). Ahead of time, these libraries are kept
-    apart from the others (inductor names a library for its wrapper code, the same with either ``exp``, and a library
-    loaded twice from one path is the first one); just in time, inductor's caches are bypassed."""
+    of the step in ``perf``). Ignored for CUDA programs (Triton's ``exp``). Ahead of time, each library has a folder
+    of its own (:func:`_library_dir`); just in time, inductor's caches are bypassed."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 
@@ -98,10 +99,10 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     mode = ("aot" if ahead_of_time and cpu else "direct") if direct else "wrapped"
     options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
         {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "intermediates"}
-    if fast_exp:  # apart from programs with Sleef's exp: a graph's library is named for its wrapper code only (and
-        # a library loaded twice from one path is the first one), and the JIT path's caches are keyed on the graph
-        options = {**options, **({"aot_inductor.output_path": "exp_u20"} if mode == "aot" else
-                                 {"force_disable_caches": True})}
+    if mode == "aot":  # a library of its own for each graph, its constants and options (see _library_dir)
+        options = {**options, "aot_inductor.output_path": _library_dir(gm, inputs, options, fast_exp)}
+    elif fast_exp:  # apart from programs with Sleef's exp: the JIT path's caches are keyed on the graph
+        options = {**options, "force_disable_caches": True}
     attempts = [options]
     if gemm_templates:
         attempts.insert(0, {**options, "freezing": True, "max_autotune": True, "max_autotune_gemm_backends": "CPP"})
@@ -127,6 +128,33 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
         out = prog(*args)
         return out[0] if isinstance(out, (list, tuple)) else out
     return single
+
+
+def _library_dir(gm, inputs, options: dict, fast_exp: bool) -> str:
+    """The folder (in inductor's cache) of the ahead-of-time library for the traced graph ``gm``: named for a digest
+    of its code, the values of its constants, the inputs' layout, the options and ``fast_exp``. Inductor names a
+    library for its wrapper code alone, which is the same for graphs that differ only in their constants' values
+    (two models of one architecture, two LGVIs of one rod under different forces) or in the ``exp`` generated, and a
+    library loaded twice from one path in a process is the first one: before 2026-12-02 the second such program ran
+    with the first one's constants."""
+    import hashlib
+    h = hashlib.sha256()
+    for part in (torch.__version__, gm.code, repr(sorted(options.items())), str(fast_exp),
+                 repr([(tuple(x.shape), x.stride(), str(x.dtype), str(x.device)) for x in inputs])):
+        h.update(part.encode())
+    for node in gm.graph.nodes:
+        if node.op != "get_attr":
+            continue
+        value = gm
+        for name in node.target.split("."):
+            value = getattr(value, name)
+        h.update(node.target.encode())
+        if isinstance(value, Tensor):
+            h.update(f"{tuple(value.shape)} {value.dtype}".encode())
+            h.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+        else:
+            h.update(repr(value).encode())
+    return os.path.join("cmlearn_programs", h.hexdigest()[:32])
 
 
 def _exp_u20():

@@ -69,3 +69,17 @@ def test_fast_exp_is_its_own_program_and_accurate_to_a_few_units_in_the_last_pla
         assert float(((got[fast][1:-1].double() - ref) / ref).abs().max()) < (6e-7 if fast else 1.5e-7)
         assert sig[[0, -1, 5000]].tolist() == [0.0, 1.0, 0.5]
     assert not torch.equal(got[False], got[True])
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_programs_that_differ_only_in_their_constants_compute_with_their_own(mode):
+    """Two functions of one graph holding different tensors (two models of one architecture, two LGVIs of one rod
+    under different forces) compile to two programs, each with its own constants, in one process. Ahead of time
+    inductor names a library for its wrapper code, which is the same for both, and a library loaded twice from one
+    path is the first one: before 2026-12-02 the second program returned the first one's results."""
+    def scaled(c):
+        return lambda x: torch.exp(x * c) + c
+
+    x = torch.linspace(-1.0, 1.0, 7)
+    for c in (torch.full((7,), 0.5), torch.full((7,), -2.0), torch.full((7,), 0.5)):
+        assert torch.allclose(compile_program(scaled(c), [x], **MODES[mode])(x), scaled(c)(x), atol=1e-6)
