@@ -310,12 +310,13 @@ class LGVI:
 
     # ------------------------------------------------------------------ compiled fused steps
     def compiled_rollout(self, state: LGVIState, n_steps: int, steps_per_call: int = 4,
-                         newton_iters: int = 2, record_every: int | None = None):
+                         newton_iters: int = 2, record_every: int | None = None, record_R: bool = False):
         """Advance with ``steps_per_call`` steps fused into one compiled program (fixed Newton count: from the
         start ``u / 2J`` two iterations reach round-off for rotations below ~1e-3 rad per step). Finiteness and the
         Newton residual are checked after each call; a failing call is replayed eagerly to report the exact step.
         Returns ``(state, positions (..., T, n, 3))`` with positions recorded every ``record_every`` calls' worth
-        of steps (None: final only). The first call for a batch shape compiles (seconds); time it separately.
+        of steps (None: final only), and with ``record_R`` the rotations (..., T, n, 3, 3) at the same frames third.
+        The first call for a batch shape compiles (seconds); time it separately.
 
         On the CPU the program is compiled ahead of time for the state's shapes (``make_fx`` and inductor,
         :func:`physics.programs.compile_program`: a call costs a few microseconds and one allocation, where a
@@ -337,6 +338,7 @@ class LGVI:
         t = self._tensor_time(state.t)
         p, v, R, pi = state.p, state.v, state.R, state.pi
         rec = [p] if record_every else None
+        rec_R = [R] if record_every and record_R else None
         tol = self._residual_limit()
         self.eager_blocks = 0
         fn = None
@@ -365,8 +367,13 @@ class LGVI:
                     field.block_done(good.t + (steps_per_call - 1) * self.dt)
             if record_every and (c + 1) % record_every == 0:
                 rec.append(p)
+                if rec_R is not None:
+                    rec_R.append(R)
         out = LGVIState(state.t + n_steps * self.dt, p, v, R, pi, state.step + n_steps)
-        return out, (torch.stack(rec, -3) if record_every else None)
+        frames = torch.stack(rec, -3) if record_every else None
+        if record_R:
+            return out, frames, (torch.stack(rec_R, -4) if record_every else None)
+        return out, frames
 
     def _fused_program(self, inputs: tuple[Tensor, ...], steps: int, newton_iters: int, field):
         """``fn(t, p, v, R, pi) -> (t, p, v, R, pi, largest Newton residual, largest field drift)`` after ``steps``

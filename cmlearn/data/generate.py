@@ -54,11 +54,13 @@ def _midpoint_wrench(force, task: SurrogateTask, times, n_variants: int):
     return W
 
 
-def lgvi_frames(sim, state, n_frames: int, every: int, compile: bool = False) -> tuple[torch.Tensor, float, float]:
+def lgvi_frames(sim, state, n_frames: int, every: int, compile: bool = False, record_R: bool = False):
     """Node positions (..., n_frames, n, 3) of the LGVI ``sim`` every ``every`` steps from ``state`` (the first frame),
-    its wall time, and the compile time (0 eagerly). With ``compile`` the steps run in
-    :meth:`physics.LGVI.compiled_rollout` (as many a call as divide ``every``, up to 4), its program built by an
-    untimed first call from ``state``; it equals the eager run to round-off (its fixed Newton count)."""
+    its wall time, and the compile time (0 eagerly); with ``record_R`` the rotations (..., n_frames, n, 3, 3) second.
+    With ``compile`` the steps run in :meth:`physics.LGVI.compiled_rollout` (as many a call as divide ``every``, up to
+    4), its program built by an untimed first call from ``state``; it equals the eager run to round-off (its fixed
+    Newton count; a coil field's maps, which that call leaves evaluated where its steps ended, refresh within the
+    field's ``tol`` of the eager run's)."""
     n = (n_frames - 1) * every
     compiled = 0.0
     if compile:
@@ -67,11 +69,14 @@ def lgvi_frames(sim, state, n_frames: int, every: int, compile: bool = False) ->
         sim.compiled_rollout(state, n_steps=spc, steps_per_call=spc)
         compiled = time.perf_counter() - t0
         t0 = time.perf_counter()
-        _, p = sim.compiled_rollout(state, n_steps=n, steps_per_call=spc, record_every=every // spc)
+        _, p, *R = sim.compiled_rollout(state, n_steps=n, steps_per_call=spc, record_every=every // spc,
+                                        record_R=record_R)
     else:
         t0 = time.perf_counter()
-        p = sim.simulate(state, n_steps=n, record_every=every)[1].p
-    return p, time.perf_counter() - t0, compiled
+        traj = sim.simulate(state, n_steps=n, record_every=every, record_R=record_R)[1]
+        p, R = traj.p, [traj.R]
+    wall = time.perf_counter() - t0
+    return (p, R[0], wall, compiled) if record_R else (p, wall, compiled)
 
 
 def scene_integrator(scene, p0=None, R0=None, force="scene"):
@@ -90,12 +95,12 @@ def scene_rollout(task: SurrogateTask, scene, p0=None, R0=None, force="scene", d
     tracked-node positions (..., T, n_tracked, 3) every ``delta``, the wrench inputs and the wall time. A task
     with a module of its own (the magnetic rod: tracked points rebuilt from the magnets' frames, wrench inputs
     from the coil field) runs the scene as that module does, from the scene's own shape and loads. ``compile``:
-    the LGVI's compiled rollout (:func:`lgvi_frames`; the wall time leaves its compile out), not for such a task."""
+    the LGVI's compiled rollout (:func:`lgvi_frames`; the wall time leaves its compile out)."""
     if task.custom:
-        if p0 is not None or R0 is not None or force != "scene" or compile:
-            raise ValueError(f"scene_rollout: task {task.name!r} runs its scenes from their own shape and loads, "
-                             "eagerly (p0, R0, force and compile are not accepted)")
-        return task.hook("rollout")(task, scene, duration=duration)
+        if p0 is not None or R0 is not None or force != "scene":
+            raise ValueError(f"scene_rollout: task {task.name!r} runs its scenes from their own shape and loads "
+                             "(p0, R0 and force are not accepted)")
+        return task.hook("rollout")(task, scene, duration=duration, compile=compile)
     scene, sim, state = scene_integrator(scene, p0, R0, force)
     every = task.record_every(scene)
     n_frames = int(round((duration or scene.duration) / task.delta)) + 1

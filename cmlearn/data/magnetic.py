@@ -26,7 +26,6 @@ evaluation uses the exact field.
 from __future__ import annotations
 
 import functools
-import time
 from dataclasses import replace
 
 import torch
@@ -155,9 +154,11 @@ def currents_series(currents, n: int, delta: float, offset: float = 0.5) -> Tens
                         for k in range(n)])
 
 
-def rollout(task, scene, currents=None, duration: float | None = None):
+def rollout(task, scene, currents=None, duration: float | None = None, compile: bool = False):
     """LGVI run of ``scene`` (optionally with other ``currents(t) -> (C,) or (V, C)``): tracked points
-    (..., T, n_tracked, 3) every ``task.delta``, wrench inputs (..., T-1, n_wrench, 3) and the wall time."""
+    (..., T, n_tracked, 3) every ``task.delta``, wrench inputs (..., T-1, n_wrench, 3) and the wall time. ``compile``:
+    the LGVI's compiled rollout (:func:`cmlearn.data.generate.lgvi_frames`; the wall time leaves its compile out)."""
+    from .generate import lgvi_frames
     field = scene.loads.field
     cur = field.currents if currents is None else currents
     scene = replace(scene, loads=replace(scene.loads, field=CoilField(field.emns, cur, field.tol)),
@@ -170,11 +171,8 @@ def rollout(task, scene, currents=None, duration: float | None = None):
         p, R = p.expand(I0.shape[0], -1, -1), R.expand(I0.shape[0], -1, -1, -1)
     every = task.record_every(scene)
     n_frames = int(round(scene.duration / task.delta)) + 1
-    t0 = time.perf_counter()
-    _, traj = sim.simulate(sim.initial_state(p=p, R=R), n_steps=(n_frames - 1) * every, record_every=every,
-                           record_R=True)
-    wall = time.perf_counter() - t0
-    pts = tracked_points(task, scene.rod, traj.p, traj.R)
+    P, Rs, wall, _ = lgvi_frames(sim, sim.initial_state(p=p, R=R), n_frames, every, compile, record_R=True)
+    pts = tracked_points(task, scene.rod, P, Rs)
     I = currents_series(cur, n_frames - 1, task.delta).movedim(0, -2)  # (..., T-1, C)
     W = by_frames(lambda p, i: wrench_inputs(task, scene.rod, field.emns, p, i), pts[..., :-1, :, :], I)
     return pts, W, wall

@@ -380,11 +380,12 @@ def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict
 
 
 def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None, compile: bool = False) -> dict:
-    """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there, plus the magnets'
-    orientation errors (deg) of the surrogate (closed loop, compiled where asked), of the static Cosserat model and,
+    """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there (with ``compile`` the LGVI's
+    compiled rollout too), plus the magnets' orientation errors (deg) of the surrogate (closed loop, compiled where
+    asked), of the static Cosserat model and,
     where ``checkpoints/<task>_quasistatic.pt`` is shipped, of the quasi-static hybrid
     (:mod:`cmlearn.surrogate.quasistatic`) on the same static track."""
-    from cmlearn.compare import find_checkpoint, node_errors, surrogate_rollout
+    from cmlearn.compare import compiled_lgvi_facts, find_checkpoint, node_errors, surrogate_rollout
 
     from .engine import Surrogate
     scene = task.scene_by_name(scene_name)
@@ -393,6 +394,8 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
     engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
     p_ref, _, wall_ref = rollout(task, scene)
     p_sur, wall_sur, facts = surrogate_rollout(engine, scene, compile)
+    if compile:
+        facts.update(compiled_lgvi_facts(task, scene, p_ref, wall_sur))
     p_ref = p_ref.float()
     rod, L = scene.rod, scene.rod.length
     t = torch.arange(p_ref.shape[0]) * task.delta
