@@ -1178,3 +1178,26 @@ def test_notebook_executes_on_a_short_case(monkeypatch):
     assert not [o for o in outputs if o.get("output_type") == "error"]
     assert any("speed-up" in str(o.get("data", {})) for o in outputs)
     assert any("quasi-static hybrid" in str(o.get("data", {})) for o in outputs)  # the magnetic rod's models
+
+
+def test_the_rest_output_is_not_reused_for_a_new_reference_at_a_freed_ones_address():
+    """The engine caches an anchored model's output at rest per reference tensor. Keyed on the tensor's id, a new
+    reference allocated where a freed one lived (a scene run after another in one engine: the held-out loop after the
+    printed one) got the old shape's output (before 2026-12-02: every time in this test); the cache now keeps and
+    compares the tensor itself."""
+    engine = Surrogate.load(ROOT / "checkpoints" / "ellipse.pt", task="ellipse")
+    assert engine.model.config.rest_anchor
+    torch.manual_seed(0)
+    a, b = torch.randn(2, 1, engine.model.config.n_tracked, 3)
+    want = engine.model.rest_accel(b)
+    x = a.clone()
+    engine.rest_accel(x)
+    freed = id(x)
+    del x
+    kept = []  # allocate until a tensor lands at the freed address (at once where the cache lets it go)
+    for _ in range(100):
+        y = b.clone()
+        if id(y) == freed:
+            break
+        kept.append(y)
+    assert torch.equal(engine.rest_accel(y), want)

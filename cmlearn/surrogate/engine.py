@@ -76,7 +76,7 @@ class Surrogate:
         model.freeze_features()
         self._step = self._eager_step
         self._programs = None  # compiled programs by key and input shapes, after compile()
-        self._rest_key = self._rest = None
+        self._rest_ref = self._rest_key = self._rest = None
 
     @classmethod
     def load(cls, path: str | Path, task: str | None = None) -> "Surrogate":
@@ -104,10 +104,11 @@ class Surrogate:
         a model without the rest anchor."""
         if not self.model.config.rest_anchor:
             return None
-        key = (id(ref), ref._version, ref.shape, ref.dtype, self.model.symmetry_axes)
-        if key != self._rest_key:  # no_grad only here: its context costs a microsecond a step
+        key = (ref._version, ref.shape, ref.dtype, self.model.symmetry_axes)
+        # the tensor itself is kept and compared, not its id: a new reference tensor can take a freed one's id
+        if self._rest_ref is not ref or key != self._rest_key:  # no_grad only here: a microsecond a step
             with torch.no_grad():
-                self._rest_key, self._rest = key, self.model.rest_accel(ref)
+                self._rest_ref, self._rest_key, self._rest = ref, key, self.model.rest_accel(ref)
         return self._rest
 
     @contextmanager
