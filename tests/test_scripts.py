@@ -1108,3 +1108,20 @@ def test_position_only_step_force_is_a_gradient_only_when_conservative(conservat
             lambda x: mean.accel(torch.cat([p[:, :1], x.reshape(1, n - 2, 3), p[:, -1:]], 1)).reshape(-1),
             p[0, 1:-1].reshape(-1))
         assert float((Jm - Jm.t()).abs().max() / Jm.abs().max()) < 1e-10
+
+
+def test_report_hybrid_tolerance_eager(tmp_path):
+    """The hybrid's solve tolerance against its run time: the reference tolerance deviates by nothing from itself, a
+    looser one needs fewer Levenberg-Marquardt iterations (1e-4 over the first 10 frames: 1.90 -> 0.90 a solve) and
+    moves the magnets far less than the hybrid errs against the LGVI (3.4e-4 deg; 0.008 deg, the sum of the six
+    means); the table is written."""
+    out = tmp_path / "tol.md"
+    res = run_script([str(ROOT / "scripts/report_hybrid_tolerance.py"), "--eager", "--duration", "0.2", "--tols",
+                      "1e-10", "1e-4", "--data-dir", str(tmp_path), "--out", str(out)], tmp_path)
+    ref, loose = res["rows"]
+    assert res["frames"] == 10 and not res["compiled"] and ref["deviation_max_deg"] == 0.0
+    assert loose["mean_iterations"] < ref["mean_iterations"]
+    assert 0 < loose["deviation_max_deg"] < 0.05 and ref["lgvi_sum_mean_deg"] > 0
+    assert loose["lgvi_sum_mean_deg"] == pytest.approx(ref["lgvi_sum_mean_deg"], abs=0.01)
+    assert "| 0.0001 |" in out.read_text() and "--eager --duration 0.2" in out.read_text()
+    script_fails([str(ROOT / "scripts/report_hybrid_tolerance.py"), "--tols", "0"], tmp_path, "every --tols > 0")

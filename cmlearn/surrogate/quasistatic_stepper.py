@@ -50,16 +50,18 @@ class QuasiStaticStepper:
     ``emns``: the coils; ``pose``: the clamp (:func:`~cmlearn.surrogate.magnetic.base_pose`); ``delta``: the frame
     (s), for error messages; ``programs``: where the compiled correction is kept for the next stepper of the same
     ``model`` and ``rest``; ``stages``: the solve's first tries (:data:`STAGES`; ``()``: the solver's own escalation
-    at once). The attributes ``static`` and ``solution`` hold the last frame's static rod, ``iterations`` the LM
+    at once); ``tol``: the solve's bound on the scaled tip residual (default the solver's 1e-10, as the offline
+    static track's; ``python scripts/report_hybrid_tolerance.py`` measures the frames' deviation and the step's time
+    against it). The attributes ``static`` and ``solution`` hold the last frame's static rod, ``iterations`` the LM
     iterations of its solve's tries (of the fallback's sub-steps, the last one's)."""
 
     def __init__(self, model: QuasiStaticCorrection, rest: Tensor, emns, pose: dict, delta: float,
                  compile: bool = False, predictor: bool = True, programs: dict | None = None,
-                 stages: tuple[tuple[int, int], ...] = STAGES):
+                 stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None):
         from physics.scenes_cosserat import paper2_magnetic_rod
         self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
         self.sc = paper2_magnetic_rod(13)
-        self.solver = self.sc.solver(compile=compile)
+        self.solver = self.sc.solver(compile=compile, **({} if tol is None else {"tol": tol}))
         self.nodes = list(self.sc.rod.grid.magnet_nodes)
         if compile:
             table = field_table(emns)
