@@ -4,7 +4,8 @@ Runs both from the scene's initial state, prints per-axis maximum/mean absolute 
 nodes of interest (mm and % of rod length), an RMSE(t) summary, the wall time of each and the
 speed-up, and writes ``positions.png``, ``rmse.png``, ``shapes.png`` and ``summary.json``. With ``compile``
 (``--compile``) the surrogate's step is compiled ahead of time (:meth:`cmlearn.surrogate.Surrogate.compile`) in a
-first rollout, timed apart, and the second rollout is the one timed and compared; the LGVI also runs compiled (:meth:`physics.LGVI.compiled_rollout`, its compile apart), and the speed-up over it is
+first rollout, timed apart, and the second rollout is the one timed and compared; the LGVI also runs compiled
+(:meth:`physics.LGVI.compiled_rollout`, its compile apart), and the speed-up over it is
 printed beside the one over the eager LGVI (the errors stay against the eager run). On the
 magnetic rod (``magnetic_rod``, ``magnetic_rod_heldout``) it also prints the magnets' orientation errors
 in degrees of the surrogate (closed loop), of the static Cosserat model and of the quasi-static hybrid (where

@@ -86,8 +86,8 @@ def main(argv=None):
     compile_s = 0.0
     if not a.eager:  # the programs (solver and frame) are built by a first step, timed apart
         t0 = time.perf_counter()
-        hybrid.stepper(scene, compile=True).step(scene.loads.field.currents(torch.tensor(task.delta,
-                                                                                         dtype=torch.float64)))
+        first = scene.loads.field.currents(torch.tensor(task.delta, dtype=torch.float64))
+        hybrid.stepper(scene, compile=True).step(first)
         compile_s = time.perf_counter() - t0
     rows, ref = [], None
     for tol in a.tols:
@@ -108,9 +108,9 @@ def main(argv=None):
     text = table(res)
     print(text)
     if a.out:
+        command = " ".join(["python scripts/report_hybrid_tolerance.py", *(sys.argv[1:] if argv is None else argv)])
         write_text_atomic(Path(a.out), "# The quasi-static hybrid's solve tolerance: error against run time\n\n"
-                          f"`python scripts/report_hybrid_tolerance.py {' '.join(sys.argv[1:] if argv is None else argv)}`" +
-                          "\n\n" + text + "\n")
+                          f"`{command}`\n\n{text}\n")
     print(json.dumps(res))
     return res
 

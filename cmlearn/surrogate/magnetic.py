@@ -382,9 +382,8 @@ def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict
 def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None, compile: bool = False) -> dict:
     """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there (with ``compile`` the LGVI's
     compiled rollout too), plus the magnets' orientation errors (deg) of the surrogate (closed loop, compiled where
-    asked), of the static Cosserat model and,
-    where ``checkpoints/<task>_quasistatic.pt`` is shipped, of the quasi-static hybrid
-    (:mod:`cmlearn.surrogate.quasistatic`) on the same static track."""
+    asked), of the static Cosserat model and, where ``checkpoints/<task>_quasistatic.pt`` is shipped, of the
+    quasi-static hybrid (:mod:`cmlearn.surrogate.quasistatic`) on the same static track."""
     from cmlearn.compare import compiled_lgvi_facts, find_checkpoint, node_errors, surrogate_rollout
 
     from .engine import Surrogate
