@@ -77,8 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--duration", type=_positive_float, default=None, help="simulated seconds")
     p_cmp.add_argument("--out", type=Path, default=None, help="output folder (default ./out/compare_<scene>)")
     p_cmp.add_argument("--compile", action="store_true",
-                       help="compile the surrogate's step and (but on the magnetic rod's scenes) the LGVI ahead of "
-                            "time (tens of seconds each, timed apart) and time their compiled rollouts")
+                       help="compile the surrogate's step and the LGVI ahead of time (tens of seconds each, timed "
+                            "apart) and time their compiled rollouts")
     p_cmp.set_defaults(func=_cmd_compare)
     return parser
 

@@ -63,8 +63,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     handle at every call; ``docs/surrogates.md``, "Programs compiled ahead of time"), in a folder named for the
     graph and its constants' values (:func:`_library_dir`: programs that differ only in their constants, two models
     of one architecture, are two libraries). Its inputs' sizes and strides are checked as the JIT wrapper checks
-    them (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set), strides of size-1 dimensions included. For the small programs of a real-time step; the Cosserat solver's long programs
-    keep the default path.
+    them (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set), strides of size-1 dimensions included. For the small
+    programs of a real-time step; the Cosserat solver's long programs keep the default path.
 
     ``fast_exp``: the C++ programs' vectorised ``exp`` as ATen's inline ``exp_u20`` (a degree-5 polynomial after
     range reduction; documented to 20 units in the last place, measured to 3.7e-7 relative, 3 units, on [-80, 80];

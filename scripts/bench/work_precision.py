@@ -34,7 +34,7 @@ from statistics import median
 import torch
 
 from cmlearn.data import get_task
-from cmlearn.data.generate import lgvi_frames
+from cmlearn.data.generate import lgvi_frames, scene_integrator
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import atomic_write, write_text_atomic
 from cmlearn.surrogate import Surrogate, surrogate_checkpoints
@@ -74,9 +74,7 @@ def physics_scene(scene, n_elements: int, dt: float):
 def physics_runner(scene, delta: float, compiled: bool):
     """``run() -> (headline node positions (T, 3) every ``delta``, wall s)`` of the LGVI on ``scene`` from rest
     (:func:`cmlearn.data.generate.lgvi_frames`; the first compiled run's wall includes its compile)."""
-    sim = scene.make_integrator()
-    cfg = scene.initial_configuration()
-    start = sim.initial_state(p=cfg["p"], R=cfg.get("R"))
+    _, sim, start = scene_integrator(scene)
     every = int(round(delta / scene.dt))
     n_frames = int(round(scene.duration / delta)) + 1
     node = scene.nodes_of_interest[0]
