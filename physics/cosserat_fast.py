@@ -26,6 +26,10 @@ costs about 180 us for the 12 steps of the Paper II rod and the call a few us, w
 per step cost 52 calls of 7-36 us of kernel plus 5-10 us of call each. In the layout for batches a
 fused shot compiled for more than ten minutes, so there every step is its own program (the call
 overhead is small against the work of a batch); the programs of steps without magnets are shared.
+
+Chord iterations (``CosseratSolver.solve(chord=...)``) run :func:`chord_program`: the whole shot without
+tangents and the chord step, one program in either layout (at batch 1 on the Paper II rod about 45 us a call
+against about 220 us for an LM iteration's shot, warm; in a real-time loop each program runs from a cold cache).
 """
 from __future__ import annotations
 
@@ -39,7 +43,7 @@ from .cosserat_lanes import end_of_step, rk4_tangent_step
 from .cosserat_ode import _field_wrench
 from .programs import compile_program
 
-__all__ = ["NZ", "step_program", "flatten_field", "fast_lm"]
+__all__ = ["NZ", "step_program", "flatten_field", "fast_lm", "fast_chord"]
 
 NZ = 13 * 7  # primal + six tangents
 
@@ -170,6 +174,7 @@ def _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step):
     and of their tangents (6 lists of 6)."""
     mag_moment, mag_mass, gravity, field_scale, *ftens = rest
     N = math.prod(batch)
+    tan = bool(T)  # no tangents: the primal jumps alone (the residual program)
     eye = torch.eye(3, dtype=y[0].dtype, device=y[0].device)
 
     def vec(c, lead=(N,)):  # a (..., 3) vector by multiply-adds, not a stack (no concat buffers)
@@ -183,30 +188,33 @@ def _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step):
         return sum(vec(c).unsqueeze(-2) * lane[j].unsqueeze(-1) for j, c in enumerate(cs))
 
     pos = vec(y[0:3])
-    dpos = vec6([tj[0:3] for tj in T])
+    dpos = vec6([tj[0:3] for tj in T]) if tan else None
     field = field_rebuild(ftens) if field_rebuild is not None else None
     dy = [0.0] * 6
     dT = [[0.0] * 6 for _ in T]
     for k in mags:
         mub = mag_moment[..., k, :].unbind(-1)  # (N | 1,) each
         mu = vec(_mv(R, mub))
-        dmu = vec6([_mv(S, mub) for S in dR])
+        dmu = vec6([_mv(S, mub) for S in dR]) if tan else None
         Fm = mag_mass[..., k, None] * gravity
         Tm = torch.zeros_like(mu)
-        dF = dM = torch.zeros_like(dpos)
+        dF = dM = torch.zeros_like(dpos) if tan else None
         if field is not None:
             Fw, Tw, dF, dM = _field_wrench(field, t, pos.reshape(*batch, 3), mu.reshape(*batch, 3),
-                                           dpos.reshape(*batch, 6, 3), dmu.reshape(*batch, 6, 3), fd_step)
+                                           dpos.reshape(*batch, 6, 3) if tan else None,
+                                           dmu.reshape(*batch, 6, 3) if tan else None, fd_step)
             sc = field_scale.reshape(-1).unsqueeze(-1)
-            Fw, Tw = Fw.reshape(-1, 3), Tw.reshape(-1, 3)
-            dF, dM = dF.reshape(-1, 6, 3), dM.reshape(-1, 6, 3)
-            Fm, Tm, dF, dM = Fm + Fw * sc, Tw * sc, dF * sc.unsqueeze(-1), dM * sc.unsqueeze(-1)
+            Fm, Tm = Fm + Fw.reshape(-1, 3) * sc, Tw.reshape(-1, 3) * sc
+            if tan:
+                dF, dM = dF.reshape(-1, 6, 3) * sc.unsqueeze(-1), dM.reshape(-1, 6, 3) * sc.unsqueeze(-1)
         W = (*Fm.expand(N, 3).unbind(-1), *Tm.expand(N, 3).unbind(-1))
-        dF, dM = dF.expand(N, 6, 3), dM.expand(N, 6, 3)
         for i in range(6):
             dy[i] = dy[i] - W[i]
-            for j in range(len(T)):
-                dT[j][i] = dT[j][i] - (dF if i < 3 else dM)[:, j, i % 3]
+        if tan:
+            dF, dM = dF.expand(N, 6, 3), dM.expand(N, 6, 3)
+            for i in range(6):
+                for j in range(len(T)):
+                    dT[j][i] = dT[j][i] - (dF if i < 3 else dM)[:, j, i % 3]
     return dy, dT
 
 
@@ -296,6 +304,89 @@ def shot_program(lanes: bool, magnet_rows, batch: tuple[int, ...], field_rebuild
         return tuple(o.contiguous() for o in out)  # the same strides as the inputs of the next call
 
     return run
+
+
+def _residual_shot(magnet_rows, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float, scales):
+    """A whole shot without tangents, to the scaled tip residual:
+    ``(x (N, 6), rows (R, N | 1, 25), base_p, base_q, *rest) -> r (N, 6)`` (row ``i`` applies the point wrenches
+    of the magnets ``magnet_rows[i]``): the primal alone, about a seventh of the work of a shot with tangents."""
+    fs, ms = scales
+
+    def shot(x, rows, base_p, base_q, *rest):
+        N = x.shape[0]
+        sc = torch.tensor([fs] * 3 + [ms] * 3, dtype=x.dtype, device=x.device)
+        y = list(torch.cat((base_p.expand(N, 3), base_q.expand(N, 4), x * sc), -1).unbind(-1))
+        for mags, row in zip(magnet_rows, rows.unbind(0)):
+            r = row.unbind(-1)
+            h, ks, kb, vh, uh = r[0], r[1:4], r[4:7], r[7:10], r[10:13]
+            f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
+            k1 = _rhs(y, ks, kb, vh, uh, f, tau)[0]
+            k2 = _rhs(_axpy(y, h / 2, k1), ks, kb, vh, uh, f, tau)[0]
+            k3 = _rhs(_axpy(y, h / 2, k2), ks, kb, vh, uh, f, tau)[0]
+            k4 = _rhs(_axpy(y, h, k3), ks, kb, vh, uh, f, tau)[0]
+            y = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
+            end_of_step(y, [], F, M)
+            if mags:
+                dy = _magnet_jumps(y, [], mags, rest, batch, field_rebuild, t, fd_step)[0]
+                y[7:13] = [a + b for a, b in zip(y[7:13], dy)]
+            y = [c.expand(N) for c in y]
+        return torch.stack(y[7:13], -1) / sc
+
+    return shot
+
+
+def chord_program(magnet_rows, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float, scales):
+    """One chord iteration (``CosseratSolver.solve(chord=...)``) as one program: the residual by a shot without
+    tangents (:func:`_residual_shot`), then ``physics.cosserat_shooting._chord_math``:
+    ``(x, J^-1, xp, rp, best, best_rn, prev, its, live, tol, rows, base_p, base_q, *rest)
+    -> (x, J^-1, xp, rp, best, best_rn, prev, its, start, go)``."""
+    from .cosserat_shooting import _chord_math
+    shot = _residual_shot(magnet_rows, batch, field_rebuild, t, fd_step, scales)
+
+    def run(x, Jinv, xp, rp, best, best_rn, prev, its, live, tol, rows, base_p, base_q, *rest):
+        r = shot(x, rows, base_p, base_q, *rest)
+        return tuple(o.contiguous() for o in _chord_math(x, r, Jinv, xp, rp, best, best_rn, prev, its, live, tol))
+
+    return run
+
+
+def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its: Tensor, live: Tensor, step_tab,
+               max_steps: int, compiled: bool = True, flat=None):
+    """The chord iterations of ``CosseratSolver._chord`` on the compiled :func:`chord_program`: ``(start,
+    its)``, or ``None`` where the field hook cannot be traced (the caller then shoots eagerly)."""
+    flat = flatten_field(field) if flat is None else flat
+    if flat is None:
+        return None
+    fkey, ftens, rebuild = flat
+    shp = tuple(x.shape[:-1])
+    N = math.prod(shp)
+    tabs, rows, rest, bp, bq = _prepared(solver, prm, loads, shp, N < LANES_BELOW, step_tab)
+    key = ("chord", N, solver.tol, x.dtype, str(x.device))
+    if key not in _STARTS:
+        kw = dict(dtype=x.dtype, device=x.device)
+        _STARTS[key] = (torch.zeros(N, 6, **kw), torch.full((N,), math.inf, **kw), torch.tensor(solver.tol, **kw))
+    zero, inf, tol = _STARTS[key]
+    x = x.reshape(N, 6).contiguous()  # (the programs never write to their inputs: one tensor may be several)
+    state = [x, Jinv.reshape(N, 6, 6).contiguous(), x, zero, x, inf, inf, its.reshape(N).contiguous()]
+    fixed = [live.reshape(N).contiguous(), tol, rows, bp, bq, *rest, *(a.contiguous() for a in ftens)]
+    key = ("chord", compiled, shp, tabs.magnet_rows, solver.scales, fkey, float(t), float(solver.fd_step),
+           _sig(state + fixed))
+    if key in _FAILED:
+        return None
+    try:
+        prog = _program(key, lambda: chord_program(tabs.magnet_rows, shp, rebuild, t, solver.fd_step,
+                                                   solver.scales), state + fixed, compiled)
+    except Exception as e:  # an untraceable field hook: fall back (once per key)
+        import warnings
+        warnings.warn(f"Cosserat fast chord iterations unavailable ({type(e).__name__}: {e}); shooting eagerly",
+                      stacklevel=3)
+        _FAILED.add(key)
+        return None
+    for _ in range(max_steps):
+        *state, start, go = prog(*state, *fixed)
+        if not bool(go):
+            break
+    return start.reshape(*shp, 6), state[-1].reshape(shp)
 
 
 # ----------------------------------------------------------------------------------------- fields

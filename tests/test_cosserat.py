@@ -14,7 +14,7 @@ from physics.cosserat_fast import fast_lm, flatten_field
 from physics.cosserat_lanes import lane_step, lane_tables, shoot_lanes, step_table
 from physics.cosserat_ode import shoot
 from physics.cosserat_inverse import fit_uniform_field, tip_angle
-from physics.cosserat_shooting import CosseratSolver, solve_static
+from physics.cosserat_shooting import CHORD_MAX, CosseratSolver, solve_static
 from physics.relax import static_equilibrium
 from physics.scene import MU0
 from physics.scenes_cosserat import NDFEB, PMC770, LinearField, paper2_magnetic_rod
@@ -180,6 +180,44 @@ def test_fast_path_programs_match_the_reference_shooting(monkeypatch):
                       raise_on_failure=False)  # a per-call cap on the iterations binds the programs too (ref: 3)
     assert capped.iterations.tolist() == [2, 2] and not bool(capped.converged.any())
     assert flatten_field(lambda t, x: x) is None  # a plain function: the torch.compile path instead
+
+
+def test_chord_iterations_from_a_neighbouring_jacobian_reach_the_lm_solution_with_one_shot_of_tangents(monkeypatch):
+    """``solve(chord=J)``: Newton steps with a nearby solution's Jacobian frozen (Broyden-updated), each a shot
+    without tangents, reach the equilibrium LM reaches; LM then evaluates once (the tangents, the check). The
+    compiled path's chord program (run eagerly here) takes the same steps; a useless Jacobian hands over to LM."""
+    sc = paper2_magnetic_rod()
+    Gm = torch.diag(torch.tensor([0.02, -0.01, -0.01], dtype=D))
+    B = torch.tensor([[0.004, 0.0015, 0.0], [0.003, -0.002, 0.001]], dtype=D)
+    solver = CosseratSolver(sc.rod)
+    near = sc.solve(solver, field=LinearField(B * 0.99, Gm))
+    evaluate, shots = CosseratSolver._evaluate, []
+
+    def counted(self, *a, **k):
+        shots.append(1)
+        return evaluate(self, *a, **k)
+    monkeypatch.setattr(CosseratSolver, "_evaluate", counted)
+    ref = sc.solve(solver, field=LinearField(B, Gm), init=near)
+    lm_shots, shots[:] = len(shots), []
+    out = sc.solve(solver, field=LinearField(B, Gm), init=near, chord=near.jacobian)
+    assert len(shots) == 1 < lm_shots and bool(out.converged.all()) and bool((out.iterations >= 2).all())
+    assert (out.y - ref.y).abs().max() < 1e-9 and (out.jacobian - ref.jacobian).abs().max() < 1e-8
+    shots[:] = []
+    bad = sc.solve(solver, field=LinearField(B, Gm), init=near, chord=50 * torch.eye(6, dtype=D))
+    assert len(shots) > 1 and bool(bad.converged.all()) and (bad.y - ref.y).abs().max() < 1e-9
+    # the chord program (compiled path, eagerly) takes the eager chord's steps
+    loads = solver._loads(dict(gravity=sc.gravity, base_quaternion=sc.base_quaternion))
+    x0 = (near.base_wrench / solver._sc).contiguous()
+    live, its = torch.ones(2, dtype=torch.bool), torch.zeros(2, dtype=torch.long)
+    Jinv = torch.linalg.inv(near.jacobian)
+    start, it1 = cosserat_fast.fast_chord(solver, x0, Jinv, solver.params, loads, LinearField(B, Gm), 0.0, its, live,
+                                          step_table(solver.params, sc.rod.grid), CHORD_MAX, compiled=False)
+    start2, it2 = solver._chord(x0, near.jacobian, solver.params, loads, LinearField(B, Gm), 0.0, its, live)
+    assert it1.tolist() == it2.tolist() and (start - start2).abs().max() < 1e-13
+    with pytest.raises(ValueError, match="chord iterations need load_steps=1"):
+        sc.solve(solver, field=LinearField(B, Gm), init=near, chord=near.jacobian, load_steps=2)
+    with pytest.raises(ValueError, match=r"chord must be a finite scaled Jacobian \(\.\.\., 6, 6\)"):
+        sc.solve(solver, field=LinearField(B, Gm), init=near, chord=torch.eye(3, dtype=D))
 
 
 # ------------------------------------------------------------------------------------ gradients

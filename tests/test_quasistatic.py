@@ -286,16 +286,16 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
     cp, Rp, _, Rs = engine.run(scene)
     currents = scene.loads.field.currents
     its = {}
-    for predictor in (True, False):
-        st = engine.stepper(scene, predictor=predictor)
-        frames, its[predictor] = [], 0
+    for predictor, chord in ((False, False), (True, False), (True, True)):
+        st = engine.stepper(scene, predictor=predictor, chord=chord)
+        frames, its[predictor, chord] = [], 0
         for k in range(1, 31):
             frames.append(st.step(currents(torch.tensor(0.02 * k, dtype=torch.float64))))
-            its[predictor] += st.iterations
+            its[predictor, chord] += st.iterations
         c, R = torch.stack([f[0] for f in frames]), torch.stack([f[1] for f in frames])
         assert (c - cp).abs().max() < 1e-8 and orientation_errors(R, Rp).abs().max() < 1e-4  # m, deg
     assert orientation_errors(Rp, Rs).abs().max() > 0.3  # the correction moves the magnets off the static rod
-    assert its[True] < its[False]  # the secant predictor saves Levenberg-Marquardt iterations
+    assert its[True, False] < its[False, False]  # the secant predictor saves Levenberg-Marquardt iterations
     assert st.k == 30 and st.static.shape == (1, engine.model.config.increments + 1, 13)
     # the frame's program traces (the compiled stepper compiles it) and equals the eager frame
     args = (st.solution.y[st.nodes].contiguous(), torch.tensor(0.3, dtype=torch.float64), st.dev, st.static)

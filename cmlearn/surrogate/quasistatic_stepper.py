@@ -5,7 +5,9 @@ of the last ``increments + 1`` frames and the deviations of the last ``eta + 1``
 
 1. solves the static Cosserat rod (13 nodes, float64) at the new currents, started from the secant predictor
    ``2 w(k) - w(k-1)`` of the base wrench (two Levenberg-Marquardt iterations where the warm start alone took
-   three, on the held-out profile), in the stages of :data:`STAGES`: at most 10 iterations, then, where the
+   three, on the held-out profile) and, with ``chord`` (default), first by chord iterations with the secant of the
+   last two frames' Jacobians (``CosseratSolver.solve(chord=...)``: shots without tangents, then one with them),
+   in the stages of :data:`STAGES`: at most 10 iterations, then, where the
    rod snaps over (its branch of equilibria ends at a fold), the loads stepped up from the predictor in 12 steps
    of at most 10 iterations each. On the held-out profile's folds that lands where the solver's own escalation
    lands (4, 16, then 64 load steps of up to 50 iterations each: 211-260 iterations, 44-54 ms), in at most 65
@@ -52,12 +54,13 @@ class QuasiStaticStepper:
     ``model`` and ``rest``; ``stages``: the solve's first tries (:data:`STAGES`; ``()``: the solver's own escalation
     at once); ``tol``: the solve's bound on the scaled tip residual (default the solver's 1e-10, as the offline
     static track's; ``python scripts/report_hybrid_tolerance.py`` measures the frames' deviation and the step's time
-    against it). The attributes ``static`` and ``solution`` hold the last frame's static rod, ``iterations`` the LM
-    iterations of its solve's tries (of the fallback's sub-steps, the last one's)."""
+    against it); ``chord``: chord iterations before the first stage's LM (module docstring). The attributes ``static``
+    and ``solution`` hold the last frame's static rod, ``iterations`` the chord and LM iterations of its solve's tries
+    (of the fallback's sub-steps, the last one's)."""
 
     def __init__(self, model: QuasiStaticCorrection, rest: Tensor, emns, pose: dict, delta: float,
                  compile: bool = False, predictor: bool = True, programs: dict | None = None,
-                 stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None):
+                 stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None, chord: bool = True):
         from physics.scenes_cosserat import paper2_magnetic_rod
         self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
         self.sc = paper2_magnetic_rod(13)
@@ -68,7 +71,7 @@ class QuasiStaticStepper:
             self.field_of = lambda I: TabulatedField(table, I)  # noqa: E731
         else:
             self.field_of = lambda I: field_hook(emns, I)  # noqa: E731
-        self.predictor, self.compiled, self.stages = predictor, compile, tuple(stages)
+        self.predictor, self.compiled, self.stages, self.chord = predictor, compile, tuple(stages), bool(chord)
         with torch.no_grad():
             self._rest_out = model.rest_output()
         self._programs = {} if programs is None else programs
@@ -102,11 +105,14 @@ class QuasiStaticStepper:
         """The static rod at ``currents`` (the next frame's), from the predictor or the last solution; it becomes
         :attr:`solution` (the correction is :meth:`correct`'s)."""
         I, sol = self._currents(currents), self.solution
-        init = sol if self._prev_wrench is None or not self.predictor else 2 * sol.base_wrench - self._prev_wrench
+        secant = self._prev_wrench is not None and self.predictor
+        init = 2 * sol.base_wrench - self._prev_wrench if secant else sol
+        jac = 2 * sol.jacobian - self._prev_jacobian if secant else sol.jacobian
         field, self.iterations = self.field_of(I), 0
         for steps, its in self.stages:
+            chord = jac if self.chord and steps == 1 else None
             out = self.sc.solve(self.solver, field=field, init=init, load_steps=steps, max_load_steps=steps,
-                                max_iter=its, raise_on_failure=False, **self.pose)
+                                max_iter=its, raise_on_failure=False, chord=chord, **self.pose)
             self.iterations += int(out.iterations)
             if bool(out.converged.all()):
                 break
@@ -122,7 +128,7 @@ class QuasiStaticStepper:
                 raise SolverError(f"quasi-static step: no static equilibrium at the new currents ({e})",
                                   step=self.k + 1, time=(self.k + 1) * self.delta) from None
             self.iterations += int(out.iterations)
-        self._prev_wrench, self.solution, self.currents = sol.base_wrench, out, I
+        self._prev_wrench, self._prev_jacobian, self.solution, self.currents = sol.base_wrench, sol.jacobian, out, I
         return out
 
     @torch.no_grad()

@@ -57,7 +57,8 @@ def main(argv=None):
     short = replace(scene, duration=0.2)
     step_s = {"hybrid": [], "hybrid_static_solve": [], "hybrid_correction": [], "lstm": [], "lgvi_per_sim": [],
               "hybrid_compiled": [], "hybrid_compiled_solve": [], "hybrid_compiled_correction": [],
-              "hybrid_compiled_warm": [], "lgvi_per_sim_compiled": []}
+              "hybrid_compiled_warm": [], "hybrid_compiled_no_chord": [], "hybrid_compiled_no_chord_solve": [],
+              "lgvi_per_sim_compiled": []}
     its = {}
     block = lgvi_blocks(scene, lgvi_steps, compiled=False)[0]
     compile_s = None
@@ -74,7 +75,10 @@ def main(argv=None):
             step_s["hybrid_compiled_correction"].append(h["correction_s"])
             w = hybrid.latency(scene, n=n, compile=True, predictor=False)
             step_s["hybrid_compiled_warm"].append(w["step_s"])
-            its.update(compiled=h["iterations"], compiled_warm=w["iterations"])
+            c = hybrid.latency(scene, n=n, compile=True, chord=False)
+            step_s["hybrid_compiled_no_chord"].append(c["step_s"])
+            step_s["hybrid_compiled_no_chord_solve"].append(c["static_solve_s"])
+            its.update(compiled=h["iterations"], compiled_warm=w["iterations"], compiled_no_chord=c["iterations"])
             step_s["lgvi_per_sim_compiled"].append(block_compiled())
         h = hybrid.latency(scene, n=n)
         step_s["hybrid"].append(h["step_s"])
@@ -109,8 +113,11 @@ def main(argv=None):
                     "hybrid_static_solve_ms_compiled": median(step_s["hybrid_compiled_solve"]) * 1e3,
                     "hybrid_correction_us_compiled": median(step_s["hybrid_compiled_correction"]) * 1e6,
                     "hybrid_step_ms_compiled_no_predictor": median(step_s["hybrid_compiled_warm"]) * 1e3,
+                    "hybrid_step_ms_compiled_no_chord": median(step_s["hybrid_compiled_no_chord"]) * 1e3,
+                    "hybrid_static_solve_ms_compiled_no_chord": median(step_s["hybrid_compiled_no_chord_solve"]) * 1e3,
                     "lm_iterations_compiled": its["compiled"],
                     "lm_iterations_compiled_no_predictor": its["compiled_warm"],
+                    "lm_iterations_compiled_no_chord": its["compiled_no_chord"],
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
@@ -130,14 +137,17 @@ def main(argv=None):
     if a.compile:
         print(f"  compiled (first step {compile_s:.0f} s): hybrid step "
               f"{res['hybrid_step_ms_compiled']:.2f} ms ({res['hybrid_step_hz_compiled']:.0f} steps/s; static solve "
-              f"{res['hybrid_static_solve_ms_compiled']:.2f} ms in {its['compiled']:.2f} LM iterations, correction "
+              f"{res['hybrid_static_solve_ms_compiled']:.2f} ms in {its['compiled']:.2f} iterations (chord and LM), "
+              f"correction "
               f"{res['hybrid_correction_us_compiled']:.0f} us), "
               f"{res['hybrid_real_time_factor_compiled']:.2f}x real time, "
               f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second, "
               f"{res['speedup_per_simulated_second_both_compiled']:.1f}x than the LGVI compiled "
               f"({res['lgvi_step_hz_compiled']:.0f} steps/s, compile {lgvi_compile_s:.0f} s); "
               f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
-              f"({its['compiled_warm']:.2f} LM iterations)")
+              f"({its['compiled_warm']:.2f} iterations); without the chord iterations (LM alone) "
+              f"{res['hybrid_step_ms_compiled_no_chord']:.2f} ms (static solve "
+              f"{res['hybrid_static_solve_ms_compiled_no_chord']:.2f} ms in {its['compiled_no_chord']:.2f} iterations)")
         w, e = whole["staged"], whole["escalation"]
         print(f"  the whole scene compiled ({w['steps']} steps): slowest step {w['max_step_s'] * 1e3:.1f} ms "
               f"({w['max_iterations']} LM iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
