@@ -274,8 +274,11 @@ class CosseratSolver:
 
     def _chord(self, x, J, prm, loads, field, t, its, live, flat=None, max_steps: int = CHORD_MAX):
         """At most ``max_steps`` chord iterations from ``x`` with the Jacobian ``J`` frozen (see the module
-        docstring): the point LM starts from and the updated iteration counts."""
-        Jinv = torch.linalg.inv(J).expand(*x.shape[:-1], 6, 6)
+        docstring): the point LM starts from and the updated iteration counts (a singular ``J``: no steps)."""
+        Jinv, info = torch.linalg.inv_ex(J)
+        if bool((info != 0).any()):
+            return x, its
+        Jinv = Jinv.expand(*x.shape[:-1], 6, 6)
         if self.compile and self.steps_per_call == 1:
             self._table(prm)
             out = fast_chord(self, x, Jinv, prm, loads, field, t, its, live, self._step_tab, max_steps, flat=flat)
@@ -339,6 +342,9 @@ class CosseratSolver:
         if field is not None and self.rod.magnets:
             shapes.append(self._field_batch(field, t, loads, flat))
         shp = broadcast_shape(*shapes)
+        if chord is not None and not _broadcasts_to(chord.shape[:-2], shp):
+            raise ValueError(f"chord: its batch shape {tuple(chord.shape[:-2])} does not broadcast to the problems' "
+                             f"{tuple(shp)}")
         x0 = x0.detach().expand(*shp, 6).clone()
         its = torch.zeros(shp, dtype=torch.long, device=self.device)
         grad = differentiable if differentiable is not None else _needs_grad(tuple(loads), tuple(prm), field)
@@ -425,6 +431,11 @@ class CosseratSolver:
         res = shoot(x, prm, self.rod.grid, loads, self.scales, field, t, tangent=False, fd_step=self.fd_step)
         dx = -torch.linalg.solve(J, res.r)
         return res.Y + (T * dx[..., None, :, None]).sum(-2), x + dx
+
+
+def _broadcasts_to(shape, target) -> bool:
+    """Whether a batch ``shape`` broadcasts to ``target`` (without changing it)."""
+    return len(shape) <= len(target) and all(d in (1, t) for d, t in zip(reversed(shape), reversed(target)))
 
 
 def _lm_math(x, r, J, Y, rn, lam, act, xt, rt, Jt, Yt, its, budget, tol, live):

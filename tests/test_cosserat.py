@@ -218,6 +218,11 @@ def test_chord_iterations_from_a_neighbouring_jacobian_reach_the_lm_solution_wit
         sc.solve(solver, field=LinearField(B, Gm), init=near, chord=near.jacobian, load_steps=2)
     with pytest.raises(ValueError, match=r"chord must be a finite scaled Jacobian \(\.\.\., 6, 6\)"):
         sc.solve(solver, field=LinearField(B, Gm), init=near, chord=torch.eye(3, dtype=D))
+    with pytest.raises(ValueError, match=r"chord: its batch shape \(3,\) does not broadcast to the problems' \(2,\)"):
+        sc.solve(solver, field=LinearField(B, Gm), init=near, chord=torch.eye(6, dtype=D).expand(3, 6, 6))
+    shots[:] = []
+    singular = sc.solve(solver, field=LinearField(B, Gm), init=near, chord=torch.zeros(6, 6, dtype=D))
+    assert len(shots) == lm_shots and (singular.y - ref.y).abs().max() < 1e-12  # no chord steps: LM from the start
 
 
 # ------------------------------------------------------------------------------------ gradients
