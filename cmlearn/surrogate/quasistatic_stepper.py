@@ -7,9 +7,8 @@ of the last ``increments + 1`` frames and the deviations of the last ``eta + 1``
    ``2 w(k) - w(k-1)`` of the base wrench (two Levenberg-Marquardt iterations where the warm start alone took
    three, on the held-out profile) and, with ``chord`` (default), first by chord iterations with the secant of the
    last two frames' Jacobians (``CosseratSolver.solve(chord=...)``: shots without tangents, then one with them),
-   in the stages of :data:`STAGES`: at most 10 iterations, then, where the
-   rod snaps over (its branch of equilibria ends at a fold), the loads stepped up from the predictor in 12 steps
-   of at most 10 iterations each. On the held-out profile's folds that lands where the solver's own escalation
+   in the stages of :data:`STAGES`: at most 10 iterations, then, where the rod snaps over (its branch of
+   equilibria ends at a fold), the loads stepped up from the predictor in 12 steps of at most 10 iterations each. On the held-out profile's folds that lands where the solver's own escalation
    lands (4, 16, then 64 load steps of up to 50 iterations each: 211-260 iterations, 44-54 ms), in at most 65
    iterations. Where the stages fail, that escalation, then the static track's own recovery from the last
    solution (:func:`cmlearn.data.quasistatic._warm_step`: the frame split in time, then a cold restart past a
