@@ -354,13 +354,10 @@ def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its
                max_steps: int, compiled: bool = True, flat=None):
     """The chord iterations of ``CosseratSolver._chord`` on the compiled :func:`chord_program`: ``(start,
     its)``, or ``None`` where the field hook cannot be traced (the caller then shoots eagerly)."""
-    flat = flatten_field(field) if flat is None else flat
-    if flat is None:
+    inputs = _inputs(solver, x, prm, loads, field, step_tab, flat)
+    if inputs is None:
         return None
-    fkey, ftens, rebuild = flat
-    shp = tuple(x.shape[:-1])
-    N = math.prod(shp)
-    tabs, rows, rest, bp, bq = _prepared(solver, prm, loads, shp, N < LANES_BELOW, step_tab)
+    fkey, ftens, rebuild, shp, N, tabs, rows, rest, bp, bq = inputs
     key = ("chord", N, solver.tol, x.dtype, str(x.device))
     if key not in _STARTS:
         kw = dict(dtype=x.dtype, device=x.device)
@@ -368,7 +365,7 @@ def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its
     zero, inf, tol = _STARTS[key]
     x = x.reshape(N, 6).contiguous()  # (the programs never write to their inputs: one tensor may be several)
     state = [x, Jinv.reshape(N, 6, 6).contiguous(), x, zero, x, inf, inf, its.reshape(N).contiguous()]
-    fixed = [live.reshape(N).contiguous(), tol, rows, bp, bq, *rest, *(a.contiguous() for a in ftens)]
+    fixed = [live.reshape(N).contiguous(), tol, rows, bp, bq, *rest, *ftens]
     key = ("chord", compiled, shp, tabs.magnet_rows, solver.scales, fkey, float(t), float(solver.fd_step),
            _sig(state + fixed))
     if key in _FAILED:
@@ -493,6 +490,19 @@ def _prepared(solver, prm, loads, shp: tuple[int, ...], lanes: bool, step_tab):
     return out
 
 
+def _inputs(solver, x: Tensor, prm, loads, field, step_tab, flat):
+    """What a program of the fast path takes for the scaled base wrenches ``x`` (..., 6): ``(field key, field
+    tensors, field rebuild, batch shape, N, *_prepared(...))``, or ``None`` where the field hook cannot be traced."""
+    flat = flatten_field(field) if flat is None else flat
+    if flat is None:
+        return None
+    fkey, ftens, rebuild = flat
+    shp = tuple(x.shape[:-1])
+    N = math.prod(shp)
+    return (fkey, [a.contiguous() for a in ftens], rebuild, shp, N,
+            *_prepared(solver, prm, loads, shp, N < LANES_BELOW, step_tab))
+
+
 def _start(N: int, n_rec: int, lam0: float, tol: float, dtype, device):
     """Start values of the LM state (r, J, Y, |r|, lambda, tol); the programs never write to their inputs,
     so these are shared between solves."""
@@ -516,15 +526,11 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     same program eagerly (tests); ``flat``: :func:`flatten_field` of ``field`` when already known;
     ``max_iter``: the iterations allowed (default the solver's)."""
     from .cosserat_shooting import _spd_unrolled
-    flat = flatten_field(field) if flat is None else flat
-    if flat is None:
+    inputs = _inputs(solver, x, prm, loads, field, step_tab, flat)
+    if inputs is None:
         return None
-    fkey, ftens, rebuild = flat
-    shp = tuple(x.shape[:-1])
-    N = math.prod(shp)
+    fkey, ftens, rebuild, shp, N, tabs, rows, rest, bp, bq = inputs
     lanes = N < LANES_BELOW
-    tabs, rows, rest, bp, bq = _prepared(solver, prm, loads, shp, lanes, step_tab)
-    ftens = [a.contiguous() for a in ftens]
     n_rec = rows.shape[0] + int(tabs.record_base)
     r, J, Y, rn, lam, tol = _start(N, n_rec, lam0, solver.tol, x.dtype, x.device)
     xf = x.reshape(N, 6).contiguous()
