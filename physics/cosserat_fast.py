@@ -400,7 +400,7 @@ def flatten_field(field):
             raise _Unsupported
         if isinstance(o, Tensor):
             leaves.append(o.detach())
-            return ("T", tuple(o.shape), o.dtype, str(o.device))
+            return ("T", o.shape, o.dtype, o.device)
         if o is None or isinstance(o, (bool, int, float, str)):
             return o
         if isinstance(o, (list, tuple)):
