@@ -9,7 +9,8 @@ path and the correction one program compiled ahead of time (their compile timed 
 too (:meth:`physics.lgvi.LGVI.compiled_rollout`, 4 steps a call), and that compiled step
 started from the last frame's solution alone (no predictor), and the compiled step along the whole scene, whose
 slowest steps are the snap-throughs: with the staged solve (:data:`~cmlearn.surrogate.quasistatic_stepper.STAGES`)
-and with the solver's own escalation of load steps instead; the LSTM surrogate's (``checkpoints/<task>.pt``) is
+and with the solver's own escalation of load steps instead, and the compiled step with its chord steps against LM
+alone, two steppers in alternating blocks of frames along the whole scene (:func:`chord_ab`); the LSTM surrogate's (``checkpoints/<task>.pt``) is
 its closed-loop step in the tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In
 ``--rounds`` rounds each is timed once in turn, along the scene's first steps; the wall time per simulated second
 of each, and the LGVI's over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static
@@ -32,6 +33,32 @@ from cmlearn.eval.timing import lgvi_blocks
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, short_check
 from cmlearn.surrogate.quasistatic_stepper import STAGES
+
+
+def chord_ab(hybrid: QuasiStaticSurrogate, scene, block: int) -> dict:
+    """The compiled step with the chord steps (the default) against LM alone: two steppers along the whole scene, in
+    alternating blocks of ``block`` frames (which goes first alternates too), so that both see the same frames and
+    the same drift of the machine's speed; per block pair the ratio of the two steps' medians."""
+    currents, d = scene.loads.field.currents, hybrid.task.delta
+    n = int(round(scene.duration / d))
+    sts = {c: hybrid.stepper(scene, compile=True, chord=c) for c in (True, False)}
+    med, its, ratios = {True: [], False: []}, {True: [], False: []}, []
+    for c in (True, False):  # the first frame compiles
+        sts[c].step(currents(torch.tensor(d, dtype=torch.float64)))
+    for k0 in range(2, n + 1, block):
+        for c in ((True, False) if (k0 // block) % 2 else (False, True)):
+            ts = []
+            for k in range(k0, min(k0 + block, n + 1)):
+                I = currents(torch.tensor(k * d, dtype=torch.float64))
+                t0 = time.perf_counter()
+                sts[c].step(I)
+                ts.append(time.perf_counter() - t0)
+                its[c].append(sts[c].iterations)
+            med[c].append(median(ts))
+        ratios.append(med[True][-1] / med[False][-1])
+    return {"block": block, "pairs": len(ratios), "median_ratio": median(ratios), "min_ratio": min(ratios),
+            "max_ratio": max(ratios), "pairs_faster": sum(r < 1 for r in ratios), "on_ms": median(med[True]) * 1e3,
+            "off_ms": median(med[False]) * 1e3, "on_iterations": mean(its[True]), "off_iterations": mean(its[False])}
 
 
 def main(argv=None):
@@ -57,8 +84,7 @@ def main(argv=None):
     short = replace(scene, duration=0.2)
     step_s = {"hybrid": [], "hybrid_static_solve": [], "hybrid_correction": [], "lstm": [], "lgvi_per_sim": [],
               "hybrid_compiled": [], "hybrid_compiled_solve": [], "hybrid_compiled_correction": [],
-              "hybrid_compiled_warm": [], "hybrid_compiled_no_chord": [], "hybrid_compiled_no_chord_solve": [],
-              "lgvi_per_sim_compiled": []}
+              "hybrid_compiled_warm": [], "lgvi_per_sim_compiled": []}
     its = {}
     block = lgvi_blocks(scene, lgvi_steps, compiled=False)[0]
     compile_s = None
@@ -75,10 +101,7 @@ def main(argv=None):
             step_s["hybrid_compiled_correction"].append(h["correction_s"])
             w = hybrid.latency(scene, n=n, compile=True, predictor=False)
             step_s["hybrid_compiled_warm"].append(w["step_s"])
-            c = hybrid.latency(scene, n=n, compile=True, chord=False)
-            step_s["hybrid_compiled_no_chord"].append(c["step_s"])
-            step_s["hybrid_compiled_no_chord_solve"].append(c["static_solve_s"])
-            its.update(compiled=h["iterations"], compiled_warm=w["iterations"], compiled_no_chord=c["iterations"])
+            its.update(compiled=h["iterations"], compiled_warm=w["iterations"])
             step_s["lgvi_per_sim_compiled"].append(block_compiled())
         h = hybrid.latency(scene, n=n)
         step_s["hybrid"].append(h["step_s"])
@@ -86,10 +109,11 @@ def main(argv=None):
         step_s["hybrid_correction"].append(h["correction_s"])
         step_s["lstm"].append(latency(lstm, short, n=n))
         step_s["lgvi_per_sim"].append(block())
-    whole = {}
+    whole, ab = {}, None
     if a.compile:  # every frame of the scene, folds included: the slowest step against the frame
         for label, stages in (("staged", STAGES), ("escalation", ())):
             whole[label] = hybrid.latency(scene, n=None, compile=True, stages=stages)
+        ab = chord_ab(hybrid, scene, 10 if a.quick else 50)
     d = task.delta
     ratios = [lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid"])]
     t0 = time.perf_counter()
@@ -113,11 +137,8 @@ def main(argv=None):
                     "hybrid_static_solve_ms_compiled": median(step_s["hybrid_compiled_solve"]) * 1e3,
                     "hybrid_correction_us_compiled": median(step_s["hybrid_compiled_correction"]) * 1e6,
                     "hybrid_step_ms_compiled_no_predictor": median(step_s["hybrid_compiled_warm"]) * 1e3,
-                    "hybrid_step_ms_compiled_no_chord": median(step_s["hybrid_compiled_no_chord"]) * 1e3,
-                    "hybrid_static_solve_ms_compiled_no_chord": median(step_s["hybrid_compiled_no_chord_solve"]) * 1e3,
                     "lm_iterations_compiled": its["compiled"],
-                    "lm_iterations_compiled_no_predictor": its["compiled_warm"],
-                    "lm_iterations_compiled_no_chord": its["compiled_no_chord"],
+                    "lm_iterations_compiled_no_predictor": its["compiled_warm"], "chord_ab": ab,
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
@@ -145,9 +166,11 @@ def main(argv=None):
               f"{res['speedup_per_simulated_second_both_compiled']:.1f}x than the LGVI compiled "
               f"({res['lgvi_step_hz_compiled']:.0f} steps/s, compile {lgvi_compile_s:.0f} s); "
               f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
-              f"({its['compiled_warm']:.2f} iterations); without the chord iterations (LM alone) "
-              f"{res['hybrid_step_ms_compiled_no_chord']:.2f} ms (static solve "
-              f"{res['hybrid_static_solve_ms_compiled_no_chord']:.2f} ms in {its['compiled_no_chord']:.2f} iterations)")
+              f"({its['compiled_warm']:.2f} iterations)")
+        print(f"  chord steps on / off, blocks of {ab['block']} frames alternating along the whole scene: the step's "
+              f"median {ab['median_ratio']:.3f}x (block pairs {ab['min_ratio']:.3f}-{ab['max_ratio']:.3f}x, "
+              f"{ab['pairs_faster']} of {ab['pairs']} faster; {ab['on_ms']:.3f} / {ab['off_ms']:.3f} ms, "
+              f"{ab['on_iterations']:.2f} / {ab['off_iterations']:.2f} iterations)")
         w, e = whole["staged"], whole["escalation"]
         print(f"  the whole scene compiled ({w['steps']} steps): slowest step {w['max_step_s'] * 1e3:.1f} ms "
               f"({w['max_iterations']} LM iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
