@@ -10,11 +10,12 @@ too (:meth:`physics.lgvi.LGVI.compiled_rollout`, 4 steps a call), and that compi
 started from the last frame's solution alone (no predictor), and the compiled step along the whole scene, whose
 slowest steps are the snap-throughs: with the staged solve (:data:`~cmlearn.surrogate.quasistatic_stepper.STAGES`)
 and with the solver's own escalation of load steps instead, and the compiled step with its chord steps against LM
-alone, two steppers in alternating blocks of frames along the whole scene (:func:`chord_ab`); the LSTM surrogate's (``checkpoints/<task>.pt``) is
-its closed-loop step in the tabulated coil field; the LGVI (float64, eager) runs the scene's first seconds. In
-``--rounds`` rounds each is timed once in turn, along the scene's first steps; the wall time per simulated second
-of each, and the LGVI's over the hybrid's as a ratio per round (min, mean, max). Also the hybrid's and the static
-rod's orientation errors over the printed profile's first move (:func:`cmlearn.surrogate.quasistatic.short_check`).
+alone, two steppers in alternating blocks of frames along the whole scene (:func:`chord_ab`); the LSTM surrogate's
+(``checkpoints/<task>.pt``) is its closed-loop step in the tabulated coil field; the LGVI (float64, eager) runs the
+scene's first seconds. In ``--rounds`` rounds each is timed once in turn, along the scene's first steps; the wall
+time per simulated second of each, and the LGVI's over the hybrid's as a ratio per round (min, mean, max). Also the
+hybrid's and the static rod's orientation errors over the printed profile's first move
+(:func:`cmlearn.surrogate.quasistatic.short_check`).
 Batch 1, ``--threads`` threads (default 1), CPU. Last line: one JSON object.
 """
 from __future__ import annotations
@@ -159,8 +160,7 @@ def main(argv=None):
         print(f"  compiled (first step {compile_s:.0f} s): hybrid step "
               f"{res['hybrid_step_ms_compiled']:.2f} ms ({res['hybrid_step_hz_compiled']:.0f} steps/s; static solve "
               f"{res['hybrid_static_solve_ms_compiled']:.2f} ms in {its['compiled']:.2f} iterations (chord and LM), "
-              f"correction "
-              f"{res['hybrid_correction_us_compiled']:.0f} us), "
+              f"correction {res['hybrid_correction_us_compiled']:.0f} us), "
               f"{res['hybrid_real_time_factor_compiled']:.2f}x real time, "
               f"{res['speedup_per_simulated_second_compiled']:.1f}x faster than the LGVI per simulated second, "
               f"{res['speedup_per_simulated_second_both_compiled']:.1f}x than the LGVI compiled "
@@ -173,7 +173,7 @@ def main(argv=None):
               f"{ab['on_iterations']:.2f} / {ab['off_iterations']:.2f} iterations)")
         w, e = whole["staged"], whole["escalation"]
         print(f"  the whole scene compiled ({w['steps']} steps): slowest step {w['max_step_s'] * 1e3:.1f} ms "
-              f"({w['max_iterations']} LM iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
+              f"({w['max_iterations']} iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
               f"with the solver's escalation instead of the stages {e['max_step_s'] * 1e3:.1f} ms "
               f"({e['max_iterations']} iterations), {e['over_frame']} over")
     print(f"  LSTM closed loop {res['lstm_closed_loop_step_hz']:.0f} steps/s; LGVI {res['lgvi_step_hz']:.0f} steps/s "
