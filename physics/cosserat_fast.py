@@ -133,39 +133,47 @@ def step_program(mags: tuple[int, ...], batch: tuple[int, ...], field_rebuild, t
 
     def step(Z, row, *rest):
         zs = Z.unbind(0)
-        y, T = zs[:13], [zs[13 + 13 * j: 26 + 13 * j] for j in range(6)]
-        r = row.unbind(-1)
-        h, ks, kb, vh, uh = r[0], r[1:4], r[4:7], r[7:10], r[10:13]
-        f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
-        k1, c1 = _rhs(y, ks, kb, vh, uh, f, tau)
-        d1 = [_rhs_tangent(y, c1, tj, ks, kb) for tj in T]
-        y2 = _axpy(y, h / 2, k1)
-        T2 = [_axpy(tj, h / 2, dj) for tj, dj in zip(T, d1)]
-        k2, c2 = _rhs(y2, ks, kb, vh, uh, f, tau)
-        d2 = [_rhs_tangent(y2, c2, tj, ks, kb) for tj in T2]
-        y3 = _axpy(y, h / 2, k2)
-        T3 = [_axpy(tj, h / 2, dj) for tj, dj in zip(T, d2)]
-        k3, c3 = _rhs(y3, ks, kb, vh, uh, f, tau)
-        d3 = [_rhs_tangent(y3, c3, tj, ks, kb) for tj in T3]
-        y4 = _axpy(y, h, k3)
-        T4 = [_axpy(tj, h, dj) for tj, dj in zip(T, d3)]
-        k4, c4 = _rhs(y4, ks, kb, vh, uh, f, tau)
-        d4 = [_rhs_tangent(y4, c4, tj, ks, kb) for tj in T4]
-        h6 = h / 6
-        y = [a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
-        T = [[a if b is None else a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(*z)]
-             for z in zip(T, d1, d2, d3, d4)]
-        end_of_step(y, T, F, M)
-        if mags:
-            dy, dT = _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step)
-            y[7:13] = [a + b for a, b in zip(y[7:13], dy)]
-            for tj, dj in zip(T, dT):
-                tj[7:13] = [a + b for a, b in zip(tj[7:13], dj)]
+        y, T = _rk4_row(zs[:13], [zs[13 + 13 * j: 26 + 13 * j] for j in range(6)], row, mags, rest, batch,
+                        field_rebuild, t, fd_step)
         y = [c.expand(Z.shape[1:]) for c in y]
         T = [c.expand(Z.shape[1:]) for tj in T for c in tj]
         return torch.stack((*y, *T), 0)
 
     return step
+
+
+def _rk4_row(y, T, row, mags, rest, batch, field_rebuild, t, fd_step):
+    """One grid row in component form: the RK4 step of the primal ``y`` (13 components) and the tangents ``T`` (lists
+    of 13; none for the residual alone), the quaternion renormalised, the point loads and the magnets ``mags`` applied
+    at the row's end node; ``row`` (N | 1, 25) as in :func:`step_program`. Returns the new ``(y, T)``."""
+    r = row.unbind(-1)
+    h, ks, kb, vh, uh = r[0], r[1:4], r[4:7], r[7:10], r[10:13]
+    f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
+    k1, c1 = _rhs(y, ks, kb, vh, uh, f, tau)
+    d1 = [_rhs_tangent(y, c1, tj, ks, kb) for tj in T]
+    y2 = _axpy(y, h / 2, k1)
+    T2 = [_axpy(tj, h / 2, dj) for tj, dj in zip(T, d1)]
+    k2, c2 = _rhs(y2, ks, kb, vh, uh, f, tau)
+    d2 = [_rhs_tangent(y2, c2, tj, ks, kb) for tj in T2]
+    y3 = _axpy(y, h / 2, k2)
+    T3 = [_axpy(tj, h / 2, dj) for tj, dj in zip(T, d2)]
+    k3, c3 = _rhs(y3, ks, kb, vh, uh, f, tau)
+    d3 = [_rhs_tangent(y3, c3, tj, ks, kb) for tj in T3]
+    y4 = _axpy(y, h, k3)
+    T4 = [_axpy(tj, h, dj) for tj, dj in zip(T, d3)]
+    k4, c4 = _rhs(y4, ks, kb, vh, uh, f, tau)
+    d4 = [_rhs_tangent(y4, c4, tj, ks, kb) for tj in T4]
+    h6 = h / 6
+    y = [a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
+    T = [[a if b is None else a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(*z)]
+         for z in zip(T, d1, d2, d3, d4)]
+    end_of_step(y, T, F, M)
+    if mags:
+        dy, dT = _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step)
+        y[7:13] = [a + b for a, b in zip(y[7:13], dy)]
+        for tj, dj in zip(T, dT):
+            tj[7:13] = [a + b for a, b in zip(tj[7:13], dj)]
+    return y, T
 
 
 def _magnet_jumps(y, T, mags, rest, batch, field_rebuild, t, fd_step):
@@ -317,19 +325,7 @@ def _residual_shot(magnet_rows, batch: tuple[int, ...], field_rebuild, t: float,
         sc = torch.tensor([fs] * 3 + [ms] * 3, dtype=x.dtype, device=x.device)
         y = list(torch.cat((base_p.expand(N, 3), base_q.expand(N, 4), x * sc), -1).unbind(-1))
         for mags, row in zip(magnet_rows, rows.unbind(0)):
-            r = row.unbind(-1)
-            h, ks, kb, vh, uh = r[0], r[1:4], r[4:7], r[7:10], r[10:13]
-            f, tau, F, M = r[13:16], r[16:19], r[19:22], r[22:25]
-            k1 = _rhs(y, ks, kb, vh, uh, f, tau)[0]
-            k2 = _rhs(_axpy(y, h / 2, k1), ks, kb, vh, uh, f, tau)[0]
-            k3 = _rhs(_axpy(y, h / 2, k2), ks, kb, vh, uh, f, tau)[0]
-            k4 = _rhs(_axpy(y, h, k3), ks, kb, vh, uh, f, tau)[0]
-            y = [a + (h / 6) * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(y, k1, k2, k3, k4)]
-            end_of_step(y, [], F, M)
-            if mags:
-                dy = _magnet_jumps(y, [], mags, rest, batch, field_rebuild, t, fd_step)[0]
-                y[7:13] = [a + b for a, b in zip(y[7:13], dy)]
-            y = [c.expand(N) for c in y]
+            y = [c.expand(N) for c in _rk4_row(y, [], row, mags, rest, batch, field_rebuild, t, fd_step)[0]]
         return torch.stack(y[7:13], -1) / sc
 
     return shot

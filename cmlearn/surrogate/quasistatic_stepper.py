@@ -81,7 +81,8 @@ class QuasiStaticStepper:
         """At rest in the static rod at ``currents`` (default zero): solved cold with load stepping."""
         I = self._currents(currents if currents is not None else torch.zeros(self.emns.n_coils))
         self.solution = self.sc.solve(self.solver, field=self.field_of(I), load_steps=4, **self.pose)
-        self.currents, self._prev_wrench, self.k, self.iterations = I, None, 0, int(self.solution.iterations)
+        self.currents, self.k, self.iterations = I, 0, int(self.solution.iterations)
+        self._prev_wrench = self._prev_jacobian = None
         c = self.model.config
         s = self._state(self.solution)
         self.static = s.expand(1, c.increments + 1, s.shape[-1]).clone()
@@ -106,10 +107,12 @@ class QuasiStaticStepper:
         I, sol = self._currents(currents), self.solution
         secant = self._prev_wrench is not None and self.predictor
         init = 2 * sol.base_wrench - self._prev_wrench if secant else sol
-        jac = 2 * sol.jacobian - self._prev_jacobian if secant else sol.jacobian
+        jac = None  # the chord steps' Jacobian: the secant of the last two frames' where the predictor is
+        if self.chord:
+            jac = 2 * sol.jacobian - self._prev_jacobian if secant else sol.jacobian
         field, self.iterations = self.field_of(I), 0
         for steps, its in self.stages:
-            chord = jac if self.chord and steps == 1 else None
+            chord = jac if steps == 1 else None
             out = self.sc.solve(self.solver, field=field, init=init, load_steps=steps, max_load_steps=steps,
                                 max_iter=its, raise_on_failure=False, chord=chord, **self.pose)
             self.iterations += int(out.iterations)
