@@ -27,9 +27,13 @@ per step cost 52 calls of 7-36 us of kernel plus 5-10 us of call each. In the la
 fused shot compiled for more than ten minutes, so there every step is its own program (the call
 overhead is small against the work of a batch); the programs of steps without magnets are shared.
 
-Chord iterations (``CosseratSolver.solve(chord=...)``) run :func:`chord_program`: the whole shot without
-tangents and the chord step, one program in either layout (at batch 1 on the Paper II rod about 45 us a call
-against about 220 us for an LM iteration's shot, warm; in a real-time loop each program runs from a cold cache).
+Chord iterations (``CosseratSolver.solve(chord=...)``) run :func:`chord_program`: a block of
+``CosseratSolver.chord_block`` (3) chord iterations, each the whole shot without tangents and the chord step, one
+program in either layout (at batch 1 on the Paper II rod about
+45 us an iteration against about 220 us for an LM iteration's shot, warm; in a real-time loop each program runs
+from a cold cache). A real-time loop's frames reuse the programs and their inputs through
+:class:`physics.cosserat_frames.FrameSolve` (:func:`chord_setup` and :func:`lm_setup` look them up, :func:`run_chord`
+and :func:`run_lm` run them).
 """
 from __future__ import annotations
 
@@ -43,7 +47,8 @@ from .cosserat_lanes import end_of_step, rk4_tangent_step
 from .cosserat_ode import _field_wrench
 from .programs import compile_program
 
-__all__ = ["NZ", "step_program", "flatten_field", "fast_lm", "fast_chord"]
+__all__ = ["NZ", "step_program", "flatten_field", "fast_lm", "fast_chord", "chord_setup", "run_chord", "lm_setup",
+           "run_lm"]
 
 NZ = 13 * 7  # primal + six tangents
 
@@ -331,25 +336,42 @@ def _residual_shot(magnet_rows, batch: tuple[int, ...], field_rebuild, t: float,
     return shot
 
 
-def chord_program(magnet_rows, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float, scales):
-    """One chord iteration (``CosseratSolver.solve(chord=...)``) as one program: the residual by a shot without
-    tangents (:func:`_residual_shot`), then ``physics.cosserat_shooting._chord_math``:
-    ``(x, J^-1, xp, rp, best, best_rn, prev, its, live, tol, rows, base_p, base_q, *rest)
+def chord_program(magnet_rows, batch: tuple[int, ...], field_rebuild, t: float, fd_step: float, scales,
+                  evaluations: int):
+    """``evaluations`` chord iterations (``CosseratSolver.solve(chord=...)``, a block of
+    ``CosseratSolver.chord_block``) as one program: each the residual by a shot without tangents
+    (:func:`_residual_shot`), then ``physics.cosserat_shooting._chord_math``:
+    ``(x, J^-1, xp, rp, best, best_rn, prev, its, budget, live, tol, rows, base_p, base_q, *rest)
     -> (x, J^-1, xp, rp, best, best_rn, prev, its, start, go)``."""
     from .cosserat_shooting import _chord_math
     shot = _residual_shot(magnet_rows, batch, field_rebuild, t, fd_step, scales)
 
-    def run(x, Jinv, xp, rp, best, best_rn, prev, its, live, tol, rows, base_p, base_q, *rest):
-        r = shot(x, rows, base_p, base_q, *rest)
-        return tuple(o.contiguous() for o in _chord_math(x, r, Jinv, xp, rp, best, best_rn, prev, its, live, tol))
+    def run(x, Jinv, xp, rp, best, best_rn, prev, its, budget, live, tol, rows, base_p, base_q, *rest):
+        for _ in range(evaluations):
+            r = shot(x, rows, base_p, base_q, *rest)
+            x, Jinv, xp, rp, best, best_rn, prev, its, start, go = _chord_math(x, r, Jinv, xp, rp, best, best_rn,
+                                                                              prev, its, budget, live, tol)
+        return tuple(o.contiguous() for o in (x, Jinv, xp, rp, best, best_rn, prev, its, start, go))
 
     return run
 
 
-def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its: Tensor, live: Tensor, step_tab,
-               max_steps: int, compiled: bool = True, flat=None):
-    """The chord iterations of ``CosseratSolver._chord`` on the compiled :func:`chord_program`: ``(start,
-    its)``, or ``None`` where the field hook cannot be traced (the caller then shoots eagerly)."""
+def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its: Tensor, budget: Tensor,
+               live: Tensor, step_tab, max_steps: int, block: int, compiled: bool = True, flat=None):
+    """The chord iterations of ``CosseratSolver._chord`` with the inverse Jacobian ``Jinv`` (..., 6, 6) on the
+    compiled :func:`chord_program`, ``block`` evaluations a call: ``(start, its)``, or ``None`` where the field hook
+    cannot be traced (the caller then shoots eagerly)."""
+    setup = chord_setup(solver, x, Jinv, prm, loads, field, t, its, budget, live, step_tab, block, compiled, flat)
+    if setup is None:
+        return None
+    prog, state, fixed, shp = setup
+    return run_chord(prog, state, fixed, shp, max_steps, block)
+
+
+def chord_setup(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its: Tensor, budget: Tensor,
+                live: Tensor, step_tab, block: int, compiled: bool = True, flat=None):
+    """The chord program for these inputs and its inputs: ``(program, state, fixed, batch shape)`` (the field's
+    tensors are the last ones of ``fixed``), or ``None`` where the field hook cannot be traced."""
     inputs = _inputs(solver, x, prm, loads, field, step_tab, flat)
     if inputs is None:
         return None
@@ -361,21 +383,27 @@ def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its
     zero, inf, tol = _STARTS[key]
     x = x.reshape(N, 6).contiguous()  # (the programs never write to their inputs: one tensor may be several)
     state = [x, Jinv.reshape(N, 6, 6).contiguous(), x, zero, x, inf, inf, its.reshape(N).contiguous()]
-    fixed = [live.reshape(N).contiguous(), tol, rows, bp, bq, *rest, *ftens]
-    key = ("chord", compiled, shp, tabs.magnet_rows, solver.scales, fkey, float(t), float(solver.fd_step),
+    fixed = [budget.reshape(N).contiguous(), live.reshape(N).contiguous(), tol, rows, bp, bq, *rest, *ftens]
+    key = ("chord", compiled, block, shp, tabs.magnet_rows, solver.scales, fkey, float(t), float(solver.fd_step),
            _sig(state + fixed))
     if key in _FAILED:
         return None
     try:
         prog = _program(key, lambda: chord_program(tabs.magnet_rows, shp, rebuild, t, solver.fd_step,
-                                                   solver.scales), state + fixed, compiled)
+                                                   solver.scales, block), state + fixed, compiled)
     except Exception as e:  # an untraceable field hook: fall back (once per key)
         import warnings
         warnings.warn(f"Cosserat fast chord iterations unavailable ({type(e).__name__}: {e}); shooting eagerly",
-                      stacklevel=3)
+                      stacklevel=4)
         _FAILED.add(key)
         return None
-    for _ in range(max_steps):
+    return prog, state, fixed, shp
+
+
+def run_chord(prog, state: list, fixed: list, shp: tuple[int, ...], max_steps: int, block: int):
+    """The chord program's blocks from ``state`` until no problem steps on: ``(start, its)``."""
+    from .cosserat_shooting import _chord_evaluations
+    for _ in range(_chord_evaluations(max_steps, block) // block):
         *state, start, go = prog(*state, *fixed)
         if not bool(go):
             break
@@ -521,6 +549,15 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     cannot be traced (the caller then takes the ``torch.compile`` path). ``compiled=False`` runs the
     same program eagerly (tests); ``flat``: :func:`flatten_field` of ``field`` when already known;
     ``max_iter``: the iterations allowed (default the solver's)."""
+    setup = lm_setup(solver, x, prm, loads, field, t, its, lam0, live, step_tab, compiled, flat, max_iter)
+    return None if setup is None else run_lm(*setup)
+
+
+def lm_setup(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: float, live: Tensor, step_tab,
+             compiled: bool = True, flat=None, max_iter: int | None = None):
+    """The programs of an LM iteration for these inputs and their inputs: ``(chunks, lm_args, fixed, batch shape,
+    records)`` (:func:`run_lm`; the field's tensors are the last ones of ``fixed``), or ``None`` where the field hook
+    cannot be traced."""
     from .cosserat_shooting import _spd_unrolled
     inputs = _inputs(solver, x, prm, loads, field, step_tab, flat)
     if inputs is None:
@@ -542,28 +579,36 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     if chain is None:
         try:
             with _spd_unrolled():  # (eagerly: LAPACK)
-                chain = _build_chain(solver, lanes, tabs, shp, fkey, rebuild, t, rows, lm_args, rest + ftens, compiled)
+                progs = _build_chain(solver, lanes, tabs, shp, fkey, rebuild, t, rows, lm_args, rest + ftens,
+                                     compiled)
         except Exception as e:  # an untraceable field hook: fall back (once per key)
             import warnings
             warnings.warn(f"Cosserat fast path unavailable ({type(e).__name__}: {e}); using torch.compile",
-                          stacklevel=3)
+                          stacklevel=4)
             _FAILED.add(key)
             return None
-        _CHAINS[key] = chain
-    chunks = [(prog, rows[a:b]) for prog, a, b in chain]
-    first = True
+        chain = _CHAINS[key] = [progs, None, None]
+    if chain[1] is not rows:  # the programs with their stretches of rows, kept while the rows are
+        chain[1:] = rows, [(prog, rows[a:b]) for prog, a, b in chain[0]]
+    return chain[2], lm_args, rest + ftens, shp, n_rec
+
+
+def run_lm(chunks: list, lm_args: list, fixed: list, shp: tuple[int, ...], n_rec: int):
+    """LM iterations on the programs of :func:`lm_setup` from ``lm_args`` (the start point evaluated first) until
+    every live problem has converged or run out of iterations: ``(x, r, J, Y, |r|, its)``."""
+    livef, first = lm_args[11], True
     while True:
         carry, ys = _EMPTY, []
         for prog, rows_k in chunks[:-1]:
-            carry, Yc = prog(carry, rows_k, *lm_args, *rest, *ftens)
+            carry, Yc = prog(carry, rows_k, *lm_args, *fixed)
             ys.append(Yc)
         prog, rows_k = chunks[-1]
-        xf, r, J, Y, rn, lam, itf, act, xt = prog(carry, rows_k, *lm_args, *rest, *ftens, *ys)
+        xf, r, J, Y, rn, lam, itf, act, xt = prog(carry, rows_k, *lm_args, *fixed, *ys)
         if first:  # the evaluation at the start point is not an iteration
             itf, first = itf - livef.to(itf.dtype), False
         if not bool(act.any()):
             break
-        lm_args[:9] = xf, r, J, Y, rn, lam, act, xt, itf
+        lm_args = [xf, r, J, Y, rn, lam, act, xt, itf, *lm_args[9:]]
     return (xf.reshape(*shp, 6), r.reshape(*shp, 6), J.reshape(*shp, 6, 6), Y.reshape(*shp, n_rec, 13),
             rn.reshape(shp), itf.reshape(shp))
 

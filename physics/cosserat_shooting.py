@@ -28,8 +28,11 @@ Chord iterations. A solve warm-started near its solution (a control loop's next 
 scaled Jacobian of a nearby solution (``StaticSolution.jacobian``, e.g. the last frame's): Newton steps
 ``xi <- xi - J^{-1} r`` with that Jacobian, updated by Broyden's secant after each step, each needing only the
 residual, a shot without tangents (about a seventh of an LM iteration's arithmetic). At most :data:`CHORD_MAX`
-and ``max_iter`` of them; they stop once the residual is within ``tol``, where the contraction predicts the next
-point within it, or where the residual shrinks by less than :data:`CHORD_RATE` a step. LM then starts from the
+and ``max_iter`` of them; a problem stops stepping once its residual is within ``tol``, where the contraction
+predicts the next point within it, or where the residual shrinks by less than :data:`CHORD_RATE` a step. The
+residuals are evaluated in blocks of ``chord_block`` (default :data:`CHORD_BLOCK` = 3; on the compiled path one
+program a block), and the iterations end after the block in which no problem stepped on unpredicted (a problem
+that has stopped keeps its point; one whose predicted point turned out not within ``tol`` may step on). LM then starts from the
 best point reached (or the predicted one), so that its first evaluation, with the tangents, checks convergence and
 gives the solution's Jacobian. Each chord step counts as an iteration. On the magnetic rod's real-time frames the
 chord steps shrink the residual about a hundredfold each (the Jacobian changes by about 5 % a frame).
@@ -65,8 +68,9 @@ from .loads import UniformField
 __all__ = ["StaticSolution", "CosseratSolver", "solve_static"]
 
 _LAM_COLD, _LAM_WARM, _LAM_MAX = 1e-3, 1e-6, 1e16
-#: Chord iterations: at most this many steps, each needing the residual to shrink at least by this factor.
-CHORD_MAX, CHORD_RATE = 8, 0.25
+#: Chord iterations: at most this many steps, each needing the residual to shrink at least by this factor; the
+#: residuals are evaluated in blocks of ``CHORD_BLOCK`` (the default of ``CosseratSolver.chord_block``).
+CHORD_MAX, CHORD_RATE, CHORD_BLOCK = 8, 0.25, 3
 
 
 class StaticSolution(NamedTuple):
@@ -148,7 +152,9 @@ class CosseratSolver:
     first solve per batch shape, dtype and field kind compiles (a few minutes here, ten or more for
     a batch; inductor caches it on disk). A field hook that cannot be traced (a plain function, a time
     function inside) takes the older path of :mod:`physics.cosserat_lanes` (``torch.compile`` d step
-    per grid step), as does ``steps_per_call > 1`` (that many steps fused per call).
+    per grid step), as does ``steps_per_call > 1`` (that many steps fused per call). The attribute ``chord_block``:
+    the chord iterations' residual evaluations per block (module docstring). A real-time loop's repeated solve:
+    :class:`physics.cosserat_frames.FrameSolve`.
     """
 
     def __init__(self, rod: CosseratRod, *, dtype: torch.dtype = torch.float64, device=None,
@@ -185,6 +191,7 @@ class CosseratSolver:
         self._lane_step = step1 if self.steps_per_call == 1 else chunk
         self._loads_cache: dict = {}
         self._field_shapes: dict = {}
+        self.chord_block = CHORD_BLOCK
 
     # ------------------------------------------------------------------ inputs
     def make_loads(self, *, gravity=None, point_forces=None, point_torques=None, tip_force=None, tip_moment=None,
@@ -274,24 +281,27 @@ class CosseratSolver:
 
     def _chord(self, x, J, prm, loads, field, t, its, live, flat=None, max_steps: int = CHORD_MAX):
         """At most ``max_steps`` chord iterations from ``x`` with the Jacobian ``J`` frozen (see the module
-        docstring): the point LM starts from and the updated iteration counts (a singular ``J``: no steps)."""
+        docstring), evaluated in blocks of :attr:`chord_block`: the point LM starts from and the updated iteration
+        counts (a singular ``J``: no steps)."""
         Jinv, info = torch.linalg.inv_ex(J)
         if bool((info != 0).any()):
             return x, its
         Jinv = Jinv.expand(*x.shape[:-1], 6, 6)
+        budget, block = its + max_steps, self.chord_block
         if self.compile and self.steps_per_call == 1:
             self._table(prm)
-            out = fast_chord(self, x, Jinv, prm, loads, field, t, its, live, self._step_tab, max_steps, flat=flat)
+            out = fast_chord(self, x, Jinv, prm, loads, field, t, its, budget, live, self._step_tab, max_steps,
+                             block, flat=flat)
             if out is not None:
                 return out
         inf = torch.full(x.shape[:-1], math.inf, dtype=x.dtype, device=x.device)
         best, best_rn, prev, tol = x, inf, inf, torch.tensor(self.tol, dtype=x.dtype, device=x.device)
         xp, rp = x, torch.zeros_like(x)
-        for _ in range(max_steps):
+        for k in range(_chord_evaluations(max_steps, block)):
             r = shoot(x, prm, self.rod.grid, loads, self.scales, field, t, record=False, fd_step=self.fd_step).r
             x, Jinv, xp, rp, best, best_rn, prev, its, start, go = _chord_math(x, r, Jinv, xp, rp, best, best_rn,
-                                                                              prev, its, live, tol)
-            if not bool(go):
+                                                                              prev, its, budget, live, tol)
+            if (k + 1) % block == 0 and not bool(go):
                 break
         return start, its
 
@@ -334,14 +344,8 @@ class CosseratSolver:
             x0 = init.base_wrench.detach().to(**kw) / sc
         else:
             x0 = _vec("init", init, self.dtype, self.device, (6,)) / sc
-        shapes = [t_.shape[:-1] for t_ in (loads.gravity, loads.line_force, loads.line_torque,
-                                           loads.base_position, loads.base_quaternion, x0)]
-        shapes += [loads.point_force.shape[:-2], loads.point_torque.shape[:-2], loads.field_scale.shape,
-                   prm.ks_inv.shape[:-2], prm.magnet_moment.shape[:-2]]
         flat = flatten_field(field) if self.compile else None
-        if field is not None and self.rod.magnets:
-            shapes.append(self._field_batch(field, t, loads, flat))
-        shp = broadcast_shape(*shapes)
+        shp = self._batch_shape(loads, prm, x0, field, t, flat)
         if chord is not None and not _broadcasts_to(chord.shape[:-2], shp):
             raise ValueError(f"chord: its batch shape {tuple(chord.shape[:-2])} does not broadcast to the problems' "
                              f"{tuple(shp)}")
@@ -385,6 +389,17 @@ class CosseratSolver:
         if grad:
             Y, x = self._implicit(x, J, prm, loads, field, t)
         return StaticSolution(self._s, Y, x * sc, converged, its, rn, J)
+
+    def _batch_shape(self, loads: StaticLoads, prm: CosseratParams, x0: Tensor, field, t: float, flat=None):
+        """The problems' batch shape: that of the loads, the parameters, the start ``x0`` (..., 6) and the field's
+        output broadcast together."""
+        shapes = [t_.shape[:-1] for t_ in (loads.gravity, loads.line_force, loads.line_torque,
+                                           loads.base_position, loads.base_quaternion, x0)]
+        shapes += [loads.point_force.shape[:-2], loads.point_torque.shape[:-2], loads.field_scale.shape,
+                   prm.ks_inv.shape[:-2], prm.magnet_moment.shape[:-2]]
+        if field is not None and self.rod.magnets:
+            shapes.append(self._field_batch(field, t, loads, flat))
+        return broadcast_shape(*shapes)
 
     def _loads(self, kw: dict) -> StaticLoads:
         """:meth:`make_loads` of ``kw``, cached per solver when every value is a number, a sequence of
@@ -463,11 +478,18 @@ def _lm_math(x, r, J, Y, rn, lam, act, xt, rt, Jt, Yt, its, budget, tol, live):
     return x, r, J, Y, rn, lam, its, act, x + torch.where(act.unsqueeze(-1), step, torch.zeros_like(step))
 
 
-def _chord_math(x, r, Jinv, xp, rp, best, best_rn, prev, its, live, tol):
+def _chord_evaluations(max_steps: int, block: int) -> int:
+    """The most residual evaluations of ``max_steps`` chord steps: one more than the steps (the last one checks),
+    in whole blocks of ``block``."""
+    return -(-(max_steps + 1) // block) * block
+
+
+def _chord_math(x, r, Jinv, xp, rp, best, best_rn, prev, its, budget, live, tol):
     """One chord iteration's bookkeeping at ``x`` with residual ``r`` (``xp``, ``rp``: the point and residual of
     the last iteration; ``prev`` its residual norm, inf before the first): the inverse Jacobian ``Jinv`` updated by
     Broyden's secant (``(x - xp, r - rp)``), the best point kept, and a step ``x - J^-1 r`` where the problem is
-    live, not yet within ``tol`` and its residual shrank by :data:`CHORD_RATE` since the last step. ``start`` is
+    live, has steps left (``its < budget``), is not yet within ``tol`` and its residual shrank by
+    :data:`CHORD_RATE` since the last step. ``start`` is
     where LM is to start: the new point where the contraction predicts it within ``tol`` (LM's first evaluation
     checks it), else the best one; ``go`` whether any problem steps on unpredicted.
     ``-> (x, Jinv, xp, rp, best, best_rn, prev, its, start, go)``"""
@@ -481,7 +503,7 @@ def _chord_math(x, r, Jinv, xp, rp, best, best_rn, prev, its, live, tol):
                        Jinv)
     ok = torch.isfinite(rn) & (rn < best_rn)
     best, best_rn = torch.where(ok.unsqueeze(-1), x, best), torch.where(ok, rn, best_rn)
-    step = live & ~(best_rn <= tol) & ok & (rn <= CHORD_RATE * prev)
+    step = live & (its < budget) & ~(best_rn <= tol) & ok & (rn <= CHORD_RATE * prev)
     xn = torch.where(step.unsqueeze(-1), x - (Jinv @ r.unsqueeze(-1)).squeeze(-1), x)
     pred = step & torch.isfinite(prev) & (rn * rn <= tol * prev)
     start = torch.where(pred.unsqueeze(-1), xn, best)

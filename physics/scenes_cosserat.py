@@ -84,6 +84,14 @@ class CosseratScene:
         kw.setdefault("base_quaternion", self.base_quaternion)
         return solver.solve(**kw)
 
+    def frame_solve(self, solver: CosseratSolver, **kw):
+        """A :class:`~physics.cosserat_frames.FrameSolve` (a real-time loop's repeated solve) with the scene's
+        gravity and base pose (override them as in :meth:`solve`); other keywords go to it."""
+        from .cosserat_frames import FrameSolve
+        kw.setdefault("gravity", self.gravity)
+        kw.setdefault("base_quaternion", self.base_quaternion)
+        return FrameSolve(solver, **kw)
+
 
 def paper2_magnetic_rod(n_nodes: int = 13) -> CosseratScene:
     """The Paper II manipulator (module docstring) on an RK4 grid of ``n_nodes`` nodes (>= 7)."""

@@ -209,9 +209,9 @@ def test_chord_iterations_from_a_neighbouring_jacobian_reach_the_lm_solution_wit
     loads = solver._loads(dict(gravity=sc.gravity, base_quaternion=sc.base_quaternion))
     x0 = (near.base_wrench / solver._sc).contiguous()
     live, its = torch.ones(2, dtype=torch.bool), torch.zeros(2, dtype=torch.long)
-    Jinv = torch.linalg.inv(near.jacobian)
-    start, it1 = cosserat_fast.fast_chord(solver, x0, Jinv, solver.params, loads, LinearField(B, Gm), 0.0, its, live,
-                                          step_table(solver.params, sc.rod.grid), CHORD_MAX, compiled=False)
+    start, it1 = cosserat_fast.fast_chord(solver, x0, torch.linalg.inv(near.jacobian), solver.params, loads, LinearField(B, Gm), 0.0, its,
+                                          its + CHORD_MAX, live, step_table(solver.params, sc.rod.grid), CHORD_MAX,
+                                          solver.chord_block, compiled=False)
     start2, it2 = solver._chord(x0, near.jacobian, solver.params, loads, LinearField(B, Gm), 0.0, its, live)
     assert it1.tolist() == it2.tolist() and (start - start2).abs().max() < 1e-13
     with pytest.raises(ValueError, match="chord iterations need load_steps=1"):
@@ -223,6 +223,46 @@ def test_chord_iterations_from_a_neighbouring_jacobian_reach_the_lm_solution_wit
     shots[:] = []
     singular = sc.solve(solver, field=LinearField(B, Gm), init=near, chord=torch.zeros(6, 6, dtype=D))
     assert len(shots) == lm_shots and (singular.y - ref.y).abs().max() < 1e-12  # no chord steps: LM from the start
+
+
+def test_a_frame_solve_keeps_its_programs_and_solves_what_the_solver_call_solves(monkeypatch):
+    """``FrameSolve`` (a real-time loop's repeated solve; its programs run eagerly here) equals
+    ``solve(load_steps=1, max_load_steps=1, raise_on_failure=False, ...)`` frame after frame, looks its programs up
+    only when the field's structure or the start's shape changes, and hands what its fast path does not take to
+    that call."""
+    from physics.cosserat_frames import FrameSolve
+    sc = paper2_magnetic_rod()
+    Gm = torch.diag(torch.tensor([0.02, -0.01, -0.01], dtype=D))
+    B = torch.tensor([[0.004, 0.0015, 0.0], [0.003, -0.002, 0.001]], dtype=D)
+    eager, fast = CosseratSolver(sc.rod), CosseratSolver(sc.rod, compile=True)
+    frame = sc.frame_solve(fast, max_iter=10, compiled=False)
+    setups, setup = [], FrameSolve._setup
+    monkeypatch.setattr(FrameSolve, "_setup", lambda self, *a: setups.append(1) or setup(self, *a))
+    prev = sol = sc.solve(eager, field=LinearField(B * 0.98, Gm))
+    for k, scale in enumerate((0.99, 1.0, 1.01)):
+        chord = None if k == 0 else 2 * sol.jacobian - prev.jacobian
+        field = LinearField(B * scale, Gm)
+        got = frame(field, sol, chord)
+        ref = sc.solve(eager, field=field, init=sol, chord=chord, load_steps=1, max_load_steps=1, max_iter=10,
+                       raise_on_failure=False)
+        assert bool(got.converged.all()) and got.iterations.tolist() == ref.iterations.tolist()
+        assert (got.y - ref.y).abs().max() < 1e-12 and (got.jacobian - ref.jacobian).abs().max() < 1e-9
+        assert (got.base_wrench - ref.base_wrench).abs().max() < 1e-12 * ref.base_wrench.abs().max()
+        prev, sol = sol, got
+    assert len(setups) == 2  # the first frame without a chord Jacobian, then with one
+    capped = sc.frame_solve(fast, max_iter=2, compiled=False)(LinearField(B * 1.1, Gm), sol)
+    ref = sc.solve(eager, field=LinearField(B * 1.1, Gm), init=sol, max_iter=2, max_load_steps=1,
+                   raise_on_failure=False)
+    assert not bool(capped.converged.any()) and capped.iterations.tolist() == ref.iterations.tolist() == [2, 2]
+    # what the fast path does not take (here: an eager solver) goes to the solver's call
+    calls, solve = [], CosseratSolver.solve
+    monkeypatch.setattr(CosseratSolver, "solve", lambda self, **k: calls.append(1) or solve(self, **k))
+    out = sc.frame_solve(eager, max_iter=10)(LinearField(B, Gm), prev)
+    assert calls and (out.y - prev.y).abs().max() < 1e-9  # (prev: the frame at B)
+    with pytest.raises(ValueError, match="init must have shape"):
+        frame(LinearField(B, Gm), torch.zeros(5, dtype=D))
+    with pytest.raises(ValueError, match="max_iter must be an integer >= 1"):
+        sc.frame_solve(fast, max_iter=0)
 
 
 # ------------------------------------------------------------------------------------ gradients
