@@ -298,7 +298,7 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
     assert its[True, False] < its[False, False]  # the secant predictor saves Levenberg-Marquardt iterations
     assert st.k == 30 and st.static.shape == (1, engine.model.config.increments + 1, 13)
     # the frame's program traces (the compiled stepper compiles it) and equals the eager frame
-    args = (st.solution.y[st.nodes].contiguous(), torch.tensor(0.3, dtype=torch.float64), st.dev, st.static)
+    args = (st.solution.y.contiguous(), st.solution.jacobian.contiguous(), st.dev, st.static)
     prog = compile_program(st._frame, args, direct=True)
     for a, b in zip(prog(*args), st._frame(*args)):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
@@ -306,15 +306,20 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
     # solved from the last solution (the static track's recovery)
     Scene = type(st.sc)
     solve, calls, tries = Scene.solve, [], len(qs.STAGES) + 1
+    (its, frame_solve), = st._frame_solves.items()  # the first stage's solve (physics.cosserat_frames)
+
+    def failed(out, init):
+        calls.append(init)
+        return out._replace(converged=torch.zeros_like(out.converged)) if len(calls) <= tries else out
 
     def first_fail(self, *a, **k):
-        out = solve(self, *a, **k)
-        calls.append(k.get("init"))
-        return out._replace(converged=torch.zeros_like(out.converged)) if len(calls) <= tries else out
+        return failed(solve(self, *a, **k), k.get("init"))
     last, I = st.solution, currents(torch.tensor(0.62, dtype=torch.float64))
     monkeypatch.setattr(Scene, "solve", first_fail)
+    monkeypatch.setitem(st._frame_solves, its, lambda field, init, chord: failed(frame_solve(field, init, chord), init))
     got = st.solve(I)
     monkeypatch.setattr(Scene, "solve", solve)
+    monkeypatch.setitem(st._frame_solves, its, frame_solve)
     assert len(calls) == tries + 1 and calls[tries] is last and bool(got.converged)  # the fallback: the last frame
     ref = st.sc.solve(st.solver, field=st.field_of(I), init=last, **st.pose)
     assert (got.p - ref.p).abs().max() < 1e-9

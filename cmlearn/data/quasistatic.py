@@ -70,10 +70,11 @@ class StaticTrack(NamedTuple):
 
 
 def stability_margin(sol) -> Tensor:
-    """The smallest singular value (...,) of a static solution's scaled shooting Jacobian: it falls towards
-    zero as the loads approach a fold of the equilibrium (where the rod snaps over), like the square root of the
-    distance to it, so the last few frames' margins tell when within the next frame the branch ends."""
-    return torch.linalg.svdvals(sol.jacobian)[..., -1]
+    """The smallest singular value (...,) of a static solution's scaled shooting Jacobian (``sol``: the solution or
+    its Jacobian (..., 6, 6)): it falls towards zero as the loads approach a fold of the equilibrium (where the rod
+    snaps over), like the square root of the distance to it, so the last few frames' margins tell when within the
+    next frame the branch ends."""
+    return torch.linalg.svdvals(sol if isinstance(sol, Tensor) else sol.jacobian)[..., -1]
 
 
 def static_track(currents, emns, times, n_nodes: int = 13, truncate: bool = False, **pose) -> StaticTrack:

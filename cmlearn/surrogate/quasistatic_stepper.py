@@ -7,8 +7,11 @@ of the last ``increments + 1`` frames and the deviations of the last ``eta + 1``
    ``2 w(k) - w(k-1)`` of the base wrench (two Levenberg-Marquardt iterations where the warm start alone took
    three, on the held-out profile) and, with ``chord`` (default), first by chord iterations with the secant of the
    last two frames' Jacobians (``CosseratSolver.solve(chord=...)``: shots without tangents, then one with them),
-   in the stages of :data:`STAGES`: at most 10 iterations, then, where the rod snaps over (its branch of
-   equilibria ends at a fold), the loads stepped up from the predictor in 12 steps of at most 10 iterations each. On the held-out profile's folds that lands where the solver's own escalation
+   in the stages of :data:`STAGES`: at most 10 iterations (with ``frame_solve``, the default, by a
+   :class:`~physics.cosserat_frames.FrameSolve`, which looks the solver's compiled programs up once instead of at
+   every frame), then, where the rod snaps over (its branch of equilibria ends at a fold), the loads stepped up from
+   the predictor in 12 steps of at most 10 iterations each. On the held-out profile's folds that lands where the
+   solver's own escalation
    lands (4, 16, then 64 load steps of up to 50 iterations each: 211-260 iterations, 44-54 ms), in at most 65
    iterations. Where the stages fail, that escalation, then the static track's own recovery from the last
    solution (:func:`cmlearn.data.quasistatic._warm_step`: the frame split in time, then a cold restart past a
@@ -16,7 +19,7 @@ of the last ``increments + 1`` frames and the deviations of the last ``eta + 1``
    :class:`~physics.errors.SolverError` names the step and time;
 2. computes its stability margin, the static state, the correction's deviation
    (:class:`~cmlearn.models.QuasiStaticCorrection`, float32) and the magnets' poses; with ``compile``, one program
-   compiled ahead of time (:func:`physics.programs.compile_program`) does all of it but the margin.
+   compiled ahead of time (:func:`physics.programs.compile_program`) does all of it.
 
 With ``compile`` the solver runs its compiled path in the coils' field tabulated over the workspace
 (:func:`~cmlearn.surrogate.magnetic.field_table`, 1e-8 of the exact field); otherwise the exact coil model, eager.
@@ -25,6 +28,8 @@ the static track offline, warm-started without the predictor): on the held-out p
 100 frames) and to 5e-4 deg compiled (all 1,200, snap-throughs included).
 """
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -53,13 +58,15 @@ class QuasiStaticStepper:
     ``model`` and ``rest``; ``stages``: the solve's first tries (:data:`STAGES`; ``()``: the solver's own escalation
     at once); ``tol``: the solve's bound on the scaled tip residual (default the solver's 1e-10, as the offline
     static track's; ``python scripts/report_hybrid_tolerance.py`` measures the frames' deviation and the step's time
-    against it); ``chord``: chord iterations before the first stage's LM (module docstring). The attributes ``static``
+    against it); ``chord``: chord iterations before the first stage's LM; ``frame_solve``: the first stage by a
+    :class:`~physics.cosserat_frames.FrameSolve` (module docstring; off: the solver's call). The attributes ``static``
     and ``solution`` hold the last frame's static rod, ``iterations`` the chord and LM iterations of its solve's tries
     (of the fallback's sub-steps, the last one's)."""
 
     def __init__(self, model: QuasiStaticCorrection, rest: Tensor, emns, pose: dict, delta: float,
                  compile: bool = False, predictor: bool = True, programs: dict | None = None,
-                 stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None, chord: bool = True):
+                 stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None, chord: bool = True,
+                 frame_solve: bool = True):
         from physics.scenes_cosserat import paper2_magnetic_rod
         self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
         self.sc = paper2_magnetic_rod(13)
@@ -71,6 +78,7 @@ class QuasiStaticStepper:
         else:
             self.field_of = lambda I: field_hook(emns, I)  # noqa: E731
         self.predictor, self.compiled, self.stages, self.chord = predictor, compile, tuple(stages), bool(chord)
+        self.frame_solve, self._frame_solves = bool(frame_solve), {}  # (per number of iterations allowed)
         with torch.no_grad():
             self._rest_out = model.rest_output()
         self._programs = {} if programs is None else programs
@@ -92,7 +100,7 @@ class QuasiStaticStepper:
         I = torch.as_tensor(currents, dtype=torch.float64).detach()
         if I.shape != (self.emns.n_coils,):
             raise ValueError(f"currents must be {self.emns.n_coils} numbers (A), got shape {tuple(I.shape)}")
-        if not bool(torch.isfinite(I).all()):
+        if not all(map(math.isfinite, I.tolist())):
             raise ValueError(f"currents must be finite, got {I.tolist()}")
         return I
 
@@ -106,15 +114,20 @@ class QuasiStaticStepper:
         :attr:`solution` (the correction is :meth:`correct`'s)."""
         I, sol = self._currents(currents), self.solution
         secant = self._prev_wrench is not None and self.predictor
-        init = 2 * sol.base_wrench - self._prev_wrench if secant else sol
+        init = torch.lerp(self._prev_wrench, sol.base_wrench, 2.0) if secant else sol  # 2 w(k) - w(k-1)
         jac = None  # the chord steps' Jacobian: the secant of the last two frames' where the predictor is
         if self.chord:
-            jac = 2 * sol.jacobian - self._prev_jacobian if secant else sol.jacobian
+            jac = torch.lerp(self._prev_jacobian, sol.jacobian, 2.0) if secant else sol.jacobian
         field, self.iterations = self.field_of(I), 0
-        for steps, its in self.stages:
-            chord = jac if steps == 1 else None
-            out = self.sc.solve(self.solver, field=field, init=init, load_steps=steps, max_load_steps=steps,
-                                max_iter=its, raise_on_failure=False, chord=chord, **self.pose)
+        for k, (steps, its) in enumerate(self.stages):
+            if k == 0 and steps == 1 and self.frame_solve:  # the programs looked up once (physics.cosserat_frames)
+                if its not in self._frame_solves:
+                    self._frame_solves[its] = self.sc.frame_solve(self.solver, max_iter=its, **self.pose)
+                out = self._frame_solves[its](field, init, jac)
+            else:
+                out = self.sc.solve(self.solver, field=field, init=init, load_steps=steps, max_load_steps=steps,
+                                    max_iter=its, raise_on_failure=False, chord=jac if steps == 1 else None,
+                                    **self.pose)
             self.iterations += int(out.iterations)
             if bool(out.converged.all()):
                 break
@@ -137,22 +150,24 @@ class QuasiStaticStepper:
     def correct(self) -> tuple[Tensor, Tensor]:
         """The correction on :attr:`solution`: the magnets' centres (2, 3) and rotations (2, 3, 3) of that frame."""
         sol = self.solution
-        y, margin = sol.y[self.nodes].contiguous(), stability_margin(sol)
+        args = (sol.y.contiguous(), sol.jacobian.contiguous(), self.dev, self.static)
         frame = self._frame
         if self.compiled:
             frame = self._programs.get("frame")
             if frame is None:
                 from physics.programs import compile_program
-                frame = self._programs["frame"] = compile_program(self._frame, (y, margin, self.dev, self.static),
-                                                                  direct=True)
-        self.dev, self.static, c, R = frame(y, margin, self.dev, self.static)
+                frame = self._programs["frame"] = compile_program(self._frame, args, direct=True)
+        self.dev, self.static, c, R = frame(*args)
         self.k += 1
         return c, R
 
-    def _frame(self, y: Tensor, margin: Tensor, dev: Tensor, static: Tensor):
+    def _frame(self, y: Tensor, jacobian: Tensor, dev: Tensor, static: Tensor):
+        """The correction's frame from the static solution's node states ``y`` (n, 13) and scaled Jacobian: the next
+        deviations and static states, the magnets' centres and rotations."""
+        y = y[self.nodes]
         q = y[:, 3:7]
         P, R = y[:, 0:3], quat_matrix(q / q.norm(dim=-1, keepdim=True))
-        s = static_state(P, R, self.rest, margin).float()[None, None]
+        s = static_state(P, R, self.rest, stability_margin(jacobian)).float()[None, None]
         static = torch.cat([static[:, 1:], s], 1)
         d = self.model(dev, static, self._rest_out)
         c, Rm = compose(d[0], P, R)

@@ -10,7 +10,8 @@ too (:meth:`physics.lgvi.LGVI.compiled_rollout`, 4 steps a call), and that compi
 started from the last frame's solution alone (no predictor), and the compiled step along the whole scene, whose
 slowest steps are the snap-throughs: with the staged solve (:data:`~cmlearn.surrogate.quasistatic_stepper.STAGES`)
 and with the solver's own escalation of load steps instead, and the compiled step with its chord steps against LM
-alone, two steppers in alternating blocks of frames along the whole scene (:func:`chord_ab`); the LSTM surrogate's
+alone and with the first stage's solve by a :class:`~physics.cosserat_frames.FrameSolve` against the solver's call,
+each two steppers in alternating blocks of frames along the whole scene (:func:`stepper_ab`); the LSTM surrogate's
 (``checkpoints/<task>.pt``) is its closed-loop step in the tabulated coil field; the LGVI (float64, eager) runs the
 scene's first seconds. In ``--rounds`` rounds each is timed once in turn, along the scene's first steps; the wall
 time per simulated second of each, and the LGVI's over the hybrid's as a ratio per round (min, mean, max). Also the
@@ -36,14 +37,15 @@ from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, short_check
 from cmlearn.surrogate.quasistatic_stepper import STAGES
 
 
-def chord_ab(hybrid: QuasiStaticSurrogate, scene, block: int) -> dict:
-    """The compiled step with the chord steps (the default) against LM alone: two steppers along the whole scene, in
-    alternating blocks of ``block`` frames (which goes first alternates too), so that both see the same frames and
-    the same drift of the machine's speed; per block pair the ratio of the two steps' medians."""
+def stepper_ab(hybrid: QuasiStaticSurrogate, scene, block: int, option: str) -> dict:
+    """The compiled step with a stepper ``option`` on (the default) against off: two steppers along the whole scene,
+    in alternating blocks of ``block`` frames (which goes first alternates too), so that both see the same frames and
+    the same drift of the machine's speed; per block pair the ratio of the two steps' medians, and the largest
+    difference of the magnets' rotations between the two (their frames' solves reach the same equilibria)."""
     currents, d = scene.loads.field.currents, hybrid.task.delta
     n = int(round(scene.duration / d))
-    sts = {c: hybrid.stepper(scene, compile=True, chord=c) for c in (True, False)}
-    med, its, ratios = {True: [], False: []}, {True: [], False: []}, []
+    sts = {c: hybrid.stepper(scene, compile=True, **{option: c}) for c in (True, False)}
+    med, its, ratios, rot = {True: [], False: []}, {True: [], False: []}, [], {True: [], False: []}
     for c in (True, False):  # the first frame compiles
         sts[c].step(currents(torch.tensor(d, dtype=torch.float64)))
     for k0 in range(2, n + 1, block):
@@ -52,14 +54,16 @@ def chord_ab(hybrid: QuasiStaticSurrogate, scene, block: int) -> dict:
             for k in range(k0, min(k0 + block, n + 1)):
                 I = currents(torch.tensor(k * d, dtype=torch.float64))
                 t0 = time.perf_counter()
-                sts[c].step(I)
+                rot[c].append(sts[c].step(I)[1])
                 ts.append(time.perf_counter() - t0)
                 its[c].append(sts[c].iterations)
             med[c].append(median(ts))
         ratios.append(med[True][-1] / med[False][-1])
-    return {"block": block, "pairs": len(ratios), "median_ratio": median(ratios), "min_ratio": min(ratios),
-            "max_ratio": max(ratios), "pairs_faster": sum(r < 1 for r in ratios), "on_ms": median(med[True]) * 1e3,
-            "off_ms": median(med[False]) * 1e3, "on_iterations": mean(its[True]), "off_iterations": mean(its[False])}
+    return {"option": option, "block": block, "pairs": len(ratios), "median_ratio": median(ratios),
+            "min_ratio": min(ratios), "max_ratio": max(ratios), "pairs_faster": sum(r < 1 for r in ratios),
+            "on_ms": median(med[True]) * 1e3, "off_ms": median(med[False]) * 1e3, "on_iterations": mean(its[True]),
+            "off_iterations": mean(its[False]),
+            "max_rotation_difference": float((torch.stack(rot[True]) - torch.stack(rot[False])).abs().max())}
 
 
 def main(argv=None):
@@ -110,11 +114,11 @@ def main(argv=None):
         step_s["hybrid_correction"].append(h["correction_s"])
         step_s["lstm"].append(latency(lstm, short, n=n))
         step_s["lgvi_per_sim"].append(block())
-    whole, ab = {}, None
+    whole, ab = {}, {}
     if a.compile:  # every frame of the scene, folds included: the slowest step against the frame
         for label, stages in (("staged", STAGES), ("escalation", ())):
             whole[label] = hybrid.latency(scene, n=None, compile=True, stages=stages)
-        ab = chord_ab(hybrid, scene, 10 if a.quick else 50)
+        ab = {o: stepper_ab(hybrid, scene, 10 if a.quick else 50, o) for o in ("chord", "frame_solve")}
     d = task.delta
     ratios = [lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid"])]
     t0 = time.perf_counter()
@@ -139,7 +143,8 @@ def main(argv=None):
                     "hybrid_correction_us_compiled": median(step_s["hybrid_compiled_correction"]) * 1e6,
                     "hybrid_step_ms_compiled_no_predictor": median(step_s["hybrid_compiled_warm"]) * 1e3,
                     "lm_iterations_compiled": its["compiled"],
-                    "lm_iterations_compiled_no_predictor": its["compiled_warm"], "chord_ab": ab,
+                    "lm_iterations_compiled_no_predictor": its["compiled_warm"], "chord_ab": ab["chord"],
+                    "frame_solve_ab": ab["frame_solve"],
                     "hybrid_real_time_factor_compiled": d / median(step_s["hybrid_compiled"]),
                     "speedup_per_simulated_second_compiled": mean(
                         lg / (hy / d) for lg, hy in zip(step_s["lgvi_per_sim"], step_s["hybrid_compiled"])),
@@ -167,10 +172,12 @@ def main(argv=None):
               f"({res['lgvi_step_hz_compiled']:.0f} steps/s, compile {lgvi_compile_s:.0f} s); "
               f"without the predictor {res['hybrid_step_ms_compiled_no_predictor']:.2f} ms "
               f"({its['compiled_warm']:.2f} iterations)")
-        print(f"  chord steps on / off, blocks of {ab['block']} frames alternating along the whole scene: the step's "
-              f"median {ab['median_ratio']:.3f}x (block pairs {ab['min_ratio']:.3f}-{ab['max_ratio']:.3f}x, "
-              f"{ab['pairs_faster']} of {ab['pairs']} faster; {ab['on_ms']:.3f} / {ab['off_ms']:.3f} ms, "
-              f"{ab['on_iterations']:.2f} / {ab['off_iterations']:.2f} iterations)")
+        for what, r in (("chord steps", ab["chord"]), ("the first stage by a FrameSolve", ab["frame_solve"])):
+            print(f"  {what} on / off, blocks of {r['block']} frames alternating along the whole scene: the step's "
+                  f"median {r['median_ratio']:.3f}x (block pairs {r['min_ratio']:.3f}-{r['max_ratio']:.3f}x, "
+                  f"{r['pairs_faster']} of {r['pairs']} faster; {r['on_ms']:.3f} / {r['off_ms']:.3f} ms, "
+                  f"{r['on_iterations']:.2f} / {r['off_iterations']:.2f} iterations; rotations within "
+                  f"{r['max_rotation_difference']:.1e})")
         w, e = whole["staged"], whole["escalation"]
         print(f"  the whole scene compiled ({w['steps']} steps): slowest step {w['max_step_s'] * 1e3:.1f} ms "
               f"({w['max_iterations']} iterations), {w['over_frame']} steps slower than the {d * 1e3:.0f} ms frame; "
