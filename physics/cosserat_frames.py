@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from .cosserat_fast import chord_setup, flatten_field, lm_setup, run_chord, run_lm
-from .cosserat_shooting import _LAM_WARM, CHORD_MAX, CosseratSolver, StaticSolution, _broadcasts_to
+from .cosserat_shooting import _LAM_WARM, CHORD_MAX, CosseratSolver, StaticSolution, _broadcasts_to, _needs_grad
 
 __all__ = ["FrameSolve"]
 
@@ -48,8 +48,8 @@ class FrameSolve:
     def __call__(self, field, init, chord: Tensor | None = None) -> StaticSolution:
         solver = self.solver
         flat = flatten_field(field) if solver.compile and solver.steps_per_call == 1 else None
-        if flat is None or torch.is_grad_enabled() and any(a.requires_grad for a in flat[1]):
-            return self._solve(field, init, chord)
+        if flat is None or _needs_grad(tuple(self._loads), tuple(solver.params), field, *flat[1]):
+            return self._solve(field, init, chord)  # (which adds the implicit gradients)
         w = init.base_wrench if isinstance(init, StaticSolution) else init
         if not isinstance(w, Tensor) or w.shape[-1:] != (6,) or (chord is not None and chord.shape[-2:] != (6, 6)):
             return self._solve(field, init, chord)  # (which names what is wrong)

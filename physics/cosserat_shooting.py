@@ -32,10 +32,11 @@ and ``max_iter`` of them; a problem stops stepping once its residual is within `
 predicts the next point within it, or where the residual shrinks by less than :data:`CHORD_RATE` a step. The
 residuals are evaluated in blocks of ``chord_block`` (default :data:`CHORD_BLOCK` = 3; on the compiled path one
 program a block), and the iterations end after the block in which no problem stepped on unpredicted (a problem
-that has stopped keeps its point; one whose predicted point turned out not within ``tol`` may step on). LM then starts from the
-best point reached (or the predicted one), so that its first evaluation, with the tangents, checks convergence and
-gives the solution's Jacobian. Each chord step counts as an iteration. On the magnetic rod's real-time frames the
-chord steps shrink the residual about a hundredfold each (the Jacobian changes by about 5 % a frame).
+that has stopped keeps its point; one whose predicted point turned out not within ``tol`` may step on). LM then
+starts from the best point reached (or the predicted one), so that its first evaluation, with the tangents, checks
+convergence and gives the solution's Jacobian. Each chord step counts as an iteration. On the magnetic rod's
+real-time frames the chord steps shrink the residual about a hundredfold each (the Jacobian changes by about 5 % a
+frame).
 
 Which equilibrium. Shooting finds *an* equilibrium, not necessarily a stable one: a strong field
 nearly opposite to a magnet's moment can give the unstable, anti-aligned solution. Load stepping
@@ -152,15 +153,15 @@ class CosseratSolver:
     first solve per batch shape, dtype and field kind compiles (a few minutes here, ten or more for
     a batch; inductor caches it on disk). A field hook that cannot be traced (a plain function, a time
     function inside) takes the older path of :mod:`physics.cosserat_lanes` (``torch.compile`` d step
-    per grid step), as does ``steps_per_call > 1`` (that many steps fused per call). The attribute ``chord_block``:
-    the chord iterations' residual evaluations per block (module docstring). A real-time loop's repeated solve:
+    per grid step), as does ``steps_per_call > 1`` (that many steps fused per call). ``chord_block``: the chord
+    iterations' residual evaluations per block (module docstring). A real-time loop's repeated solve:
     :class:`physics.cosserat_frames.FrameSolve`.
     """
 
     def __init__(self, rod: CosseratRod, *, dtype: torch.dtype = torch.float64, device=None,
                  params: CosseratParams | None = None, tol: float | None = None, max_iter: int = 50,
                  jacobian: str = "forward", compile: bool = False, steps_per_call: int = 1,
-                 fd_step: float | None = None):
+                 fd_step: float | None = None, chord_block: int = CHORD_BLOCK):
         if not isinstance(rod, CosseratRod):
             raise TypeError(f"rod must be a CosseratRod, got {type(rod).__name__}")
         if dtype not in (torch.float32, torch.float64):
@@ -191,7 +192,9 @@ class CosseratSolver:
         self._lane_step = step1 if self.steps_per_call == 1 else chunk
         self._loads_cache: dict = {}
         self._field_shapes: dict = {}
-        self.chord_block = CHORD_BLOCK
+        if int(chord_block) != chord_block or chord_block < 1:
+            raise ValueError(f"chord_block must be an integer >= 1, got {chord_block!r}")
+        self.chord_block = int(chord_block)
 
     # ------------------------------------------------------------------ inputs
     def make_loads(self, *, gravity=None, point_forces=None, point_torques=None, tip_force=None, tip_moment=None,

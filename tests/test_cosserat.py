@@ -209,9 +209,10 @@ def test_chord_iterations_from_a_neighbouring_jacobian_reach_the_lm_solution_wit
     loads = solver._loads(dict(gravity=sc.gravity, base_quaternion=sc.base_quaternion))
     x0 = (near.base_wrench / solver._sc).contiguous()
     live, its = torch.ones(2, dtype=torch.bool), torch.zeros(2, dtype=torch.long)
-    start, it1 = cosserat_fast.fast_chord(solver, x0, torch.linalg.inv(near.jacobian), solver.params, loads, LinearField(B, Gm), 0.0, its,
-                                          its + CHORD_MAX, live, step_table(solver.params, sc.rod.grid), CHORD_MAX,
-                                          solver.chord_block, compiled=False)
+    start, it1 = cosserat_fast.fast_chord(solver, x0, torch.linalg.inv(near.jacobian), solver.params, loads,
+                                          LinearField(B, Gm), 0.0, its, its + CHORD_MAX, live,
+                                          step_table(solver.params, sc.rod.grid), CHORD_MAX, solver.chord_block,
+                                          compiled=False)
     start2, it2 = solver._chord(x0, near.jacobian, solver.params, loads, LinearField(B, Gm), 0.0, its, live)
     assert it1.tolist() == it2.tolist() and (start - start2).abs().max() < 1e-13
     with pytest.raises(ValueError, match="chord iterations need load_steps=1"):
@@ -263,6 +264,14 @@ def test_a_frame_solve_keeps_its_programs_and_solves_what_the_solver_call_solves
         frame(LinearField(B, Gm), torch.zeros(5, dtype=D))
     with pytest.raises(ValueError, match="max_iter must be an integer >= 1"):
         sc.frame_solve(fast, max_iter=0)
+    with pytest.raises(ValueError, match="chord_block must be an integer >= 1"):
+        CosseratSolver(sc.rod, chord_block=0)
+    # a load that requires grad: the solver's call, with its implicit gradients (run here by the eager solver)
+    calls[:] = []
+    monkeypatch.setattr(CosseratSolver, "solve", lambda self, **k: calls.append(1) or solve(eager, **k))
+    g = torch.tensor(sc.gravity, dtype=D, requires_grad=True)
+    out = sc.frame_solve(fast, max_iter=10, compiled=False, gravity=g)(LinearField(B, Gm), prev)
+    assert calls and out.y.requires_grad
 
 
 # ------------------------------------------------------------------------------------ gradients
