@@ -29,9 +29,8 @@ overhead is small against the work of a batch); the programs of steps without ma
 
 Chord iterations (``CosseratSolver.solve(chord=...)``) run :func:`chord_program`: a block of
 ``CosseratSolver.chord_block`` (3) chord iterations, each the whole shot without tangents and the chord step, one
-program in either layout (at batch 1 on the Paper II rod about
-45 us an iteration against about 220 us for an LM iteration's shot, warm; in a real-time loop each program runs
-from a cold cache). A real-time loop's frames reuse the programs and their inputs through
+program in either layout (at batch 1 on the Paper II rod about 45 us an iteration against about 220 us for an LM
+iteration's shot, warm; in a real-time loop each program runs from a cold cache). A real-time loop's frames reuse the programs and their inputs through
 :class:`physics.cosserat_frames.FrameSolve` (:func:`chord_setup` and :func:`lm_setup` look them up, :func:`run_chord`
 and :func:`run_lm` run them).
 """
@@ -364,14 +363,17 @@ def fast_chord(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its
     setup = chord_setup(solver, x, Jinv, prm, loads, field, t, its, budget, live, step_tab, block, compiled, flat)
     if setup is None:
         return None
-    prog, state, fixed, shp = setup
-    return run_chord(prog, state, fixed, shp, max_steps, block)
+    shp = setup[-1]
+    N = math.prod(shp)
+    return run_chord(*setup[:3], x.reshape(N, 6).contiguous(), Jinv.reshape(N, 6, 6).contiguous(),
+                     its.reshape(N).contiguous(), shp, max_steps, block)
 
 
 def chord_setup(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, its: Tensor, budget: Tensor,
                 live: Tensor, step_tab, block: int, compiled: bool = True, flat=None):
-    """The chord program for these inputs and its inputs: ``(program, state, fixed, batch shape)`` (the field's
-    tensors are the last ones of ``fixed``), or ``None`` where the field hook cannot be traced."""
+    """The chord program for inputs like these and what it takes besides the start, the inverse Jacobian and the
+    iteration counts: ``(program, start values, fixed inputs, batch shape)`` (:func:`run_chord`; the field's tensors
+    are the last fixed inputs), or ``None`` where the field hook cannot be traced."""
     inputs = _inputs(solver, x, prm, loads, field, step_tab, flat)
     if inputs is None:
         return None
@@ -381,8 +383,8 @@ def chord_setup(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, it
         kw = dict(dtype=x.dtype, device=x.device)
         _STARTS[key] = (torch.zeros(N, 6, **kw), torch.full((N,), math.inf, **kw), torch.tensor(solver.tol, **kw))
     zero, inf, tol = _STARTS[key]
-    x = x.reshape(N, 6).contiguous()  # (the programs never write to their inputs: one tensor may be several)
-    state = [x, Jinv.reshape(N, 6, 6).contiguous(), x, zero, x, inf, inf, its.reshape(N).contiguous()]
+    state = _chord_state(x.reshape(N, 6).contiguous(), Jinv.reshape(N, 6, 6).contiguous(),
+                         its.reshape(N).contiguous(), (zero, inf))
     fixed = [budget.reshape(N).contiguous(), live.reshape(N).contiguous(), tol, rows, bp, bq, *rest, *ftens]
     key = ("chord", compiled, block, shp, tabs.magnet_rows, solver.scales, fkey, float(t), float(solver.fd_step),
            _sig(state + fixed))
@@ -397,12 +399,22 @@ def chord_setup(solver, x: Tensor, Jinv: Tensor, prm, loads, field, t: float, it
                       stacklevel=4)
         _FAILED.add(key)
         return None
-    return prog, state, fixed, shp
+    return prog, (zero, inf), fixed, shp
 
 
-def run_chord(prog, state: list, fixed: list, shp: tuple[int, ...], max_steps: int, block: int):
-    """The chord program's blocks from ``state`` until no problem steps on: ``(start, its)``."""
+def _chord_state(x: Tensor, Jinv: Tensor, its: Tensor, starts) -> list:
+    """The chord program's state at the start ``x`` (N, 6): ``x, J^-1, xp, rp, best, best_rn, prev, its`` (the
+    programs never write to their inputs: one tensor may be several)."""
+    zero, inf = starts
+    return [x, Jinv, x, zero, x, inf, inf, its]
+
+
+def run_chord(prog, starts, fixed: list, x: Tensor, Jinv: Tensor, its: Tensor, shp: tuple[int, ...],
+              max_steps: int, block: int):
+    """The chord program's blocks (:func:`chord_setup`) from ``x`` (N, 6) with ``Jinv`` (N, 6, 6) and the counts
+    ``its`` (N,) until no problem steps on: ``(start, its)`` shaped by ``shp``."""
     from .cosserat_shooting import _chord_evaluations
+    state = _chord_state(x, Jinv, its, starts)
     for _ in range(_chord_evaluations(max_steps, block) // block):
         *state, start, go = prog(*state, *fixed)
         if not bool(go):
@@ -549,15 +561,23 @@ def fast_lm(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: f
     cannot be traced (the caller then takes the ``torch.compile`` path). ``compiled=False`` runs the
     same program eagerly (tests); ``flat``: :func:`flatten_field` of ``field`` when already known;
     ``max_iter``: the iterations allowed (default the solver's)."""
+    max_iter = solver.max_iter if max_iter is None else max_iter
     setup = lm_setup(solver, x, prm, loads, field, t, its, lam0, live, step_tab, compiled, flat, max_iter)
-    return None if setup is None else run_lm(*setup)
+    if setup is None:
+        return None
+    chunks, starts, base, fixed, shp, n_rec = setup
+    N = math.prod(shp)
+    itf = its.reshape(N).contiguous()
+    return run_lm(chunks, starts, base, fixed, x.reshape(N, 6).contiguous(), itf, itf + max_iter,
+                  live.reshape(N).contiguous(), shp, n_rec)
 
 
 def lm_setup(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: float, live: Tensor, step_tab,
              compiled: bool = True, flat=None, max_iter: int | None = None):
-    """The programs of an LM iteration for these inputs and their inputs: ``(chunks, lm_args, fixed, batch shape,
-    records)`` (:func:`run_lm`; the field's tensors are the last ones of ``fixed``), or ``None`` where the field hook
-    cannot be traced."""
+    """The programs of an LM iteration for inputs like these and what they take besides the start, the iteration
+    counts, their budget and the live problems: ``(chunks, start values, (base position, base quaternion), fixed
+    inputs, batch shape, records)`` (:func:`run_lm`; the field's tensors are the last fixed inputs), or ``None`` where
+    the field hook cannot be traced."""
     from .cosserat_shooting import _spd_unrolled
     inputs = _inputs(solver, x, prm, loads, field, step_tab, flat)
     if inputs is None:
@@ -565,18 +585,17 @@ def lm_setup(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: 
     fkey, ftens, rebuild, shp, N, tabs, rows, rest, bp, bq = inputs
     lanes = N < LANES_BELOW
     n_rec = rows.shape[0] + int(tabs.record_base)
-    r, J, Y, rn, lam, tol = _start(N, n_rec, lam0, solver.tol, x.dtype, x.device)
-    xf = x.reshape(N, 6).contiguous()
-    itf, livef = its.reshape(N).contiguous(), live.reshape(N).contiguous()
-    # (no input passed twice: a trace would tie the two)
-    budget = itf + (solver.max_iter if max_iter is None else max_iter)
-    lm_args = [xf, r, J, Y, rn, lam, livef.clone(), xf.clone(), itf, budget, tol, livef, bp, bq]
+    starts = _start(N, n_rec, lam0, solver.tol, x.dtype, x.device)
     key = (compiled, lanes, tabs.magnet_rows, tabs.record_base, solver.scales, fkey, float(t), float(solver.fd_step),
            x.dtype, str(x.device), shp, tuple(rows.shape), _sig((bp, bq, *rest)), its.dtype)
     if key in _FAILED:
         return None
     chain = _CHAINS.get(key)
     if chain is None:
+        xf, itf, livef = x.reshape(N, 6).contiguous(), its.reshape(N).contiguous(), live.reshape(N).contiguous()
+        lm_args = _lm_args(xf, itf, itf + (solver.max_iter if max_iter is None else max_iter), livef.clone(), livef,
+                           starts, (bp, bq))
+        lm_args[7] = xf.clone()  # (traced with no input passed twice: a trace would tie the two)
         try:
             with _spd_unrolled():  # (eagerly: LAPACK)
                 progs = _build_chain(solver, lanes, tabs, shp, fkey, rebuild, t, rows, lm_args, rest + ftens,
@@ -590,13 +609,22 @@ def lm_setup(solver, x: Tensor, prm, loads, field, t: float, its: Tensor, lam0: 
         chain = _CHAINS[key] = [progs, None, None]
     if chain[1] is not rows:  # the programs with their stretches of rows, kept while the rows are
         chain[1:] = rows, [(prog, rows[a:b]) for prog, a, b in chain[0]]
-    return chain[2], lm_args, rest + ftens, shp, n_rec
+    return chain[2], starts, (bp, bq), rest + ftens, shp, n_rec
 
 
-def run_lm(chunks: list, lm_args: list, fixed: list, shp: tuple[int, ...], n_rec: int):
-    """LM iterations on the programs of :func:`lm_setup` from ``lm_args`` (the start point evaluated first) until
-    every live problem has converged or run out of iterations: ``(x, r, J, Y, |r|, its)``."""
-    livef, first = lm_args[11], True
+def _lm_args(x: Tensor, its: Tensor, budget: Tensor, act: Tensor, live: Tensor, starts, base) -> list:
+    """The LM programs' state and loop inputs at the start ``x`` (N, 6) (evaluated first, as the trial):
+    ``x, r, J, Y, |r|, lambda, act, xt, its, budget, tol, live, base_p, base_q``."""
+    r, J, Y, rn, lam, tol = starts
+    return [x, r, J, Y, rn, lam, act, x, its, budget, tol, live, *base]
+
+
+def run_lm(chunks: list, starts, base, fixed: list, x: Tensor, its: Tensor, budget: Tensor, live: Tensor,
+           shp: tuple[int, ...], n_rec: int):
+    """LM iterations on the programs of :func:`lm_setup` from ``x`` (N, 6) (evaluated first), with the counts
+    ``its`` (N,), their ``budget`` and the ``live`` problems, until every live problem has converged or run out of
+    iterations: ``(x, r, J, Y, |r|, its)`` shaped by ``shp``."""
+    lm_args, first = _lm_args(x, its, budget, live, live, starts, base), True
     while True:
         carry, ys = _EMPTY, []
         for prog, rows_k in chunks[:-1]:
@@ -605,7 +633,7 @@ def run_lm(chunks: list, lm_args: list, fixed: list, shp: tuple[int, ...], n_rec
         prog, rows_k = chunks[-1]
         xf, r, J, Y, rn, lam, itf, act, xt = prog(carry, rows_k, *lm_args, *fixed, *ys)
         if first:  # the evaluation at the start point is not an iteration
-            itf, first = itf - livef.to(itf.dtype), False
+            itf, first = itf - live.to(itf.dtype), False
         if not bool(act.any()):
             break
         lm_args = [xf, r, J, Y, rn, lam, act, xt, itf, *lm_args[9:]]

@@ -15,6 +15,8 @@ of another structure than the first call's, tensors that require grad) go to tha
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -62,14 +64,13 @@ class FrameSolve:
         if chord is not None:
             Jinv, info = torch.linalg.inv_ex(chord.detach().to(solver.dtype))
             if not bool((info != 0).any()):  # (a singular Jacobian: no chord steps)
-                prog, zero, inf = self._chord
-                state = [x, Jinv.expand(*shp, 6, 6).reshape(N, 6, 6).contiguous(), x, zero, x, inf, inf, its]
-                x, its = run_chord(prog, state, self._chord_fixed + ftens, (N,), min(CHORD_MAX, self.max_iter),
+                prog, starts, fixed = self._chord
+                Jinv = Jinv.expand(*shp, 6, 6).reshape(N, 6, 6).contiguous()
+                x, its = run_chord(prog, starts, fixed + ftens, x, Jinv, its, (N,), min(CHORD_MAX, self.max_iter),
                                    solver.chord_block)
-        chunks, start = self._lm
-        live = self._live
-        lm_args = [x, *start[:5], live, x, its, its + self.max_iter, start[5], live, *self._lm_fixed[:2]]
-        x, r, J, Y, rn, its = run_lm(chunks, lm_args, self._lm_fixed[2:] + ftens, shp, self._n_rec)
+        chunks, starts, base, fixed = self._lm
+        x, r, J, Y, rn, its = run_lm(chunks, starts, base, fixed + ftens, x, its, its + self.max_iter, self._live, shp,
+                                     self._n_rec)
         return StaticSolution(solver._s, Y, x.reshape(*shp, 6) * solver._sc, rn <= solver.tol, its, rn, J)
 
     def _solve(self, field, init, chord) -> StaticSolution:
@@ -86,26 +87,22 @@ class FrameSolve:
         shp = tuple(solver._batch_shape(loads, prm, x0, field, self.t, flat))
         if chord is not None and not _broadcasts_to(chord.shape[:-2], shp):
             return False
-        N = 1
-        for d in shp:
-            N *= d
+        N = math.prod(shp)
         x = x0.expand(*shp, 6).reshape(N, 6).contiguous()
         its = torch.zeros(N, dtype=torch.long, device=solver.device)
         live = torch.ones(N, dtype=torch.bool, device=solver.device)
         eye = torch.eye(6, dtype=solver.dtype, device=solver.device).expand(N, 6, 6).contiguous()
-        n_ftens = len(flat[1])
         ch = chord_setup(solver, x, eye, prm, loads, field, self.t, its, its + min(CHORD_MAX, self.max_iter), live,
                          solver._step_tab, solver.chord_block, self.compiled, flat)
         lm = lm_setup(solver, x, prm, loads, field, self.t, its, _LAM_WARM, live, solver._step_tab, self.compiled,
                       flat, self.max_iter)
         if ch is None or lm is None:
             return False
-        prog, state, fixed, _ = ch
-        chunks, lm_args, lm_fixed, _, n_rec = lm
-        self._chord = prog, state[3], state[5]  # (the start values zero and inf)
-        self._chord_fixed = [*fixed[:len(fixed) - n_ftens]]
-        self._lm = chunks, lm_args[1:6] + [lm_args[10]]  # r, J, Y, |r|, lambda at the start; tol
-        self._lm_fixed = lm_args[12:14] + lm_fixed[:len(lm_fixed) - n_ftens]  # base position, quaternion; rest
+        n_ftens = len(flat[1])
+        prog, starts, fixed, _ = ch
+        chunks, lm_starts, base, lm_fixed, _, n_rec = lm
+        self._chord = prog, starts, fixed[:len(fixed) - n_ftens]  # (the field's tensors come with each call)
+        self._lm = chunks, lm_starts, base, lm_fixed[:len(lm_fixed) - n_ftens]
         self._shape, self._n, self._n_rec, self._its0, self._live = shp, N, n_rec, its, live
         self._fkey = flat[0], w.shape, chord is None or chord.shape
         return True
