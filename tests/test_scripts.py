@@ -206,6 +206,39 @@ def test_bench_work_precision_quick(tmp_path):
     assert (tmp_path / "wp/work_precision_semicircle.png").stat().st_size > 10_000
 
 
+def test_bench_work_precision_magnetic_quick(tmp_path):
+    """The magnetic rod's work precision, eager over the held-out profile's first 0.3 s
+    from rest: the reference errs nothing, the coarser mesh a little, the hybrid less than its static rod alone, every
+    row timed."""
+    res = run_script([str(ROOT / "scripts/bench/work_precision_magnetic.py"), "--quick", "--eager", "--out", "wp"],
+                     tmp_path)
+    (s,) = res["scenes"]
+    rows = {(r["model"], r["per_part"], r["dt_s"]): r for r in s["rows"]}
+    assert set(rows) == {("LGVI", 4, 8e-5), ("LGVI", 2, 8e-5), ("static Cosserat, 13 nodes", None, None),
+                         ("quasi-static hybrid", None, None), ("LSTM, closed loop", None, None)}
+    ref, coarse = rows[("LGVI", 4, 8e-5)], rows[("LGVI", 2, 8e-5)]
+    assert ref["sum_of_means_deg"] == 0.0 and ref["speedup"] == 1.0 and coarse["n_elements"] == 6
+    assert 0 < coarse["sum_of_means_deg"] < 0.5 and 0 < max(coarse["distal"]["max_deg"]) < 1.0
+    static, hybrid = rows[("static Cosserat, 13 nodes", None, None)], rows[("quasi-static hybrid", None, None)]
+    assert hybrid["sum_of_means_deg"] < static["sum_of_means_deg"]
+    assert all(r["wall_per_sim_s"] > 0 for r in s["rows"])
+    assert (tmp_path / "wp/work_precision_magnetic_rod.md").read_text().count("| LGVI") == 2
+
+
+def test_the_magnetic_rod_on_a_coarser_mesh_keeps_its_magnets_and_headline_nodes():
+    from physics.scenes_magnetic_rod import magnetic_rod, on_mesh, rod
+    printed = magnetic_rod()
+    coarse = on_mesh(printed, 2)
+    assert coarse.rod.N == 6 and coarse.rod.rigid_elements == (2, 5) and coarse.nodes_of_interest == (6, 3)
+    assert coarse.rod.length == pytest.approx(printed.rod.length)
+    assert [m.s for m in coarse.rod.magnets] == [m.s for m in printed.rod.magnets]
+    assert on_mesh(printed, 4).rod == printed.rod and on_mesh(printed, 4).nodes_of_interest == printed.nodes_of_interest
+    assert printed.rod.stable_time_step().dt_max == pytest.approx(1.12e-4, rel=0.01)  # the coarse mesh's step may grow
+    assert coarse.rod.stable_time_step().dt_max == pytest.approx(1.63e-4, rel=0.01)
+    with pytest.raises(ValueError, match="per_part"):
+        rod(0)
+
+
 def test_work_precision_sweep_skips_what_a_scene_cannot_run():
     """A scene without a mesh-study builder runs only on its printed mesh; a step above a mesh's stability limit
     is refused by the LGVI (the benchmark reports it)."""
