@@ -207,9 +207,8 @@ def test_bench_work_precision_quick(tmp_path):
 
 
 def test_bench_work_precision_magnetic_quick(tmp_path):
-    """The magnetic rod's work precision, eager over the held-out profile's first 0.3 s
-    from rest: the reference errs nothing, the coarser mesh a little, the hybrid less than its static rod alone, every
-    row timed."""
+    """The magnetic rod's work precision, eager over the held-out profile's first 0.3 s from rest: the reference errs
+    nothing, the coarser mesh a little, the hybrid less than its static rod alone, every row timed."""
     res = run_script([str(ROOT / "scripts/bench/work_precision_magnetic.py"), "--quick", "--eager", "--out", "wp"],
                      tmp_path)
     (s,) = res["scenes"]
@@ -233,7 +232,7 @@ def test_the_magnetic_rod_on_a_coarser_mesh_keeps_its_magnets_and_headline_nodes
     assert coarse.rod.length == pytest.approx(printed.rod.length)
     assert [m.s for m in coarse.rod.magnets] == [m.s for m in printed.rod.magnets]
     assert on_mesh(printed, 4).rod == printed.rod and on_mesh(printed, 4).nodes_of_interest == printed.nodes_of_interest
-    assert printed.rod.stable_time_step().dt_max == pytest.approx(1.12e-4, rel=0.01)  # the coarse mesh's step may grow
+    assert printed.rod.stable_time_step().dt_max == pytest.approx(1.12e-4, rel=0.01)  # a coarser mesh's step grows
     assert coarse.rod.stable_time_step().dt_max == pytest.approx(1.63e-4, rel=0.01)
     with pytest.raises(ValueError, match="per_part"):
         rod(0)
