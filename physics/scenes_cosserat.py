@@ -80,17 +80,17 @@ class CosseratScene:
         """Solve with the scene's gravity and base pose (override them with ``gravity=``,
         ``base_quaternion=``); other keywords go to :meth:`CosseratSolver.solve`."""
         solver = self.solver() if solver is None else solver
-        kw.setdefault("gravity", self.gravity)
-        kw.setdefault("base_quaternion", self.base_quaternion)
-        return solver.solve(**kw)
+        return solver.solve(**self._posed(kw))
 
     def frame_solve(self, solver: CosseratSolver, **kw):
         """A :class:`~physics.cosserat_frames.FrameSolve` (a real-time loop's repeated solve) with the scene's
         gravity and base pose (override them as in :meth:`solve`); other keywords go to it."""
         from .cosserat_frames import FrameSolve
-        kw.setdefault("gravity", self.gravity)
-        kw.setdefault("base_quaternion", self.base_quaternion)
-        return FrameSolve(solver, **kw)
+        return FrameSolve(solver, **self._posed(kw))
+
+    def _posed(self, kw: dict) -> dict:
+        """``kw`` with the scene's gravity and base pose where it does not give them."""
+        return {"gravity": self.gravity, "base_quaternion": self.base_quaternion, **kw}
 
 
 def paper2_magnetic_rod(n_nodes: int = 13) -> CosseratScene:
