@@ -12,8 +12,6 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
 from cmlearn.io import write_text_atomic
 from physics import LGVI, CircularSection, Loads, Material, Rod
 from physics.elastic import node_frame_strains, relative_cayley

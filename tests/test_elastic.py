@@ -64,7 +64,6 @@ def test_uniform_bending_energy():
 
 
 def test_half_turn_element_raises():
-    rod = aluminium_rod(2)
     R = torch.stack([torch.eye(3, dtype=torch.float64), rot_x(torch.pi, dtype=torch.float64),
                      torch.eye(3, dtype=torch.float64)])
     with pytest.raises(SolverError, match="half turn"):

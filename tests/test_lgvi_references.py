@@ -3,7 +3,6 @@ PyElastica's dynamics on the same rod."""
 import numpy as np
 import pytest
 import scipy.integrate as si
-import torch
 
 from physics import LGVI, Loads
 from problems import EI, eb_first_frequency, pdms_rod

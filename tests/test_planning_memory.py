@@ -125,7 +125,7 @@ def test_sweep_prior_starts_the_memory_from_the_whole_map(hook_env):
                                 waypoint_prior=True)
     obs, info = swept.reset(seed=0, options={**START, **GOAL})
     assert (swept.planner.occ != -1).all()  # every cell seen in the sweep
-    (wx, wy), (ex, ey) = info["waypoint_xy"], info["ee_xy"]
+    (wx, _), (ex, _) = info["waypoint_xy"], info["ee_xy"]
     assert wx <= ex - 0.05  # back along the spur toward the way round, never into the blind end
     res = run_episode(swept, MemoryPlannerController(MPP), options={**START, **GOAL})
     assert res.success and res.steps <= 80  # straight round, without a look into the blind spur

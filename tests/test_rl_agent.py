@@ -1,5 +1,4 @@
 """The Rainbow-IQN agent: network, IQN loss, replay priorities, noise, training, checkpoints, resume."""
-import math
 
 import numpy as np
 import pytest

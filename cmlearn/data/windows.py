@@ -10,7 +10,6 @@ its step from frame k + 1 to frame k uses the force of interval k. A step that h
 (or pump) energy fits the reversed windows badly, so training on both directions penalises that."""
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
