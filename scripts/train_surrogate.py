@@ -143,6 +143,9 @@ def parse(argv=None) -> Args:
     if a.val_tail and a.val_fresh:
         ap.error("--val-tail and --val-fresh exclude each other: validate on the printed scene's tail or on fresh "
                  "variants")
+    if a.variants < 2 and not (a.val_tail or a.val_fresh):
+        ap.error(f"--variants {a.variants} leaves no variant to validate on (the printed scene's last 40 % is the "
+                 "test): give --val-tail F (the thesis's one-trajectory protocol), --val-fresh N or more variants")
     if a.val_seed < 0:
         a.val_seed = a.seed + 1
     if a.val_fresh and a.val_seed == a.seed:

@@ -20,6 +20,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from cmlearn.data.windows import split_ranges
 from cmlearn.models.quasistatic import QuasiStaticCorrection
+from cmlearn.surrogate.training import SeededDataModule
 
 __all__ = ["track_ends", "training_ranges", "fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
 
@@ -78,18 +79,18 @@ class DeviationWindows(Dataset):
                 self.d[v, k + 1:k + self.H + 1])
 
 
-class QuasiStaticDataModule(L.LightningDataModule):
+class QuasiStaticDataModule(SeededDataModule):
     def __init__(self, s: torch.Tensor, d: torch.Tensor, eta: int, increments: int, horizon: int,
                  val_horizon: int, batch_size: int = 64, val_stride: int = 8, seed: int = 0):
-        super().__init__()
+        super().__init__(seed)
         ranges = training_ranges(s)
         self.train_set = DeviationWindows(s, d, ranges["train"], eta, increments, horizon)
         self.val_set = DeviationWindows(s, d, ranges["val"], eta, increments, val_horizon, val_stride)
-        self.batch_size, self.seed = batch_size, seed
+        self.batch_size = batch_size
 
     def train_dataloader(self):
         return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, drop_last=True,
-                          generator=torch.Generator().manual_seed(self.seed))
+                          generator=self.shuffle)
 
     def val_dataloader(self):
         return DataLoader(self.val_set, batch_size=256)

@@ -19,10 +19,29 @@ from torch.utils.data import DataLoader
 from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 
-__all__ = ["SurrogateDataModule", "SurrogateModule", "RolloutSelection"]
+__all__ = ["SeededDataModule", "SurrogateDataModule", "SurrogateModule", "RolloutSelection"]
 
 
-class SurrogateDataModule(L.LightningDataModule):
+class SeededDataModule(L.LightningDataModule):
+    """A data module whose training shuffle draws from one generator seeded with ``seed`` (:attr:`shuffle`), which
+    Lightning checkpoints with torch's global generator (the training noise): a run resumed from a checkpoint draws
+    the batches and noise the uninterrupted run would have."""
+
+    def __init__(self, seed: int = 0):
+        super().__init__()
+        self.seed = seed
+        self.shuffle = torch.Generator().manual_seed(seed)
+
+    def state_dict(self):
+        return {"shuffle_rng": self.shuffle.get_state(), "torch_rng": torch.get_rng_state()}
+
+    def load_state_dict(self, state):
+        if "shuffle_rng" in state:  # checkpoints from before 2026-12-02 have none: the run restarts both
+            self.shuffle.set_state(state["shuffle_rng"])
+            torch.set_rng_state(state["torch_rng"])
+
+
+class SurrogateDataModule(SeededDataModule):
     """Training windows from ``dataset`` (see :func:`split_ranges`). Validation: the dataset's last
     ``val_variants`` variants, or, where ``val_dataset`` is given (fresh variants of the same scene from
     another seed), its variants but the first (the printed scene, trained on), while all of ``dataset``
@@ -38,7 +57,7 @@ class SurrogateDataModule(L.LightningDataModule):
                  num_workers: int = 0, seed: int = 0, inputs: torch.Tensor | None = None,
                  val_dataset: dict | None = None, val_stride: int = 1, val_inputs: torch.Tensor | None = None,
                  val_tail: float = 0.0, time_reversal: bool = False, printed_repeat: int = 1):
-        super().__init__()
+        super().__init__(seed)
         if printed_repeat < 1:
             raise ValueError(f"printed_repeat must be >= 1, got {printed_repeat}")
         if val_dataset is not None and val_tail:
@@ -66,7 +85,7 @@ class SurrogateDataModule(L.LightningDataModule):
             self.val_inputs = val_inputs
             self.ranges["val"] = [(v, 0, self.val_positions.shape[1] - 1) for v in range(1, vm["n_variants"])]
         self.eta, self.horizon, self.batch_size = eta, horizon, batch_size
-        self.num_workers, self.seed, self.val_stride = num_workers, seed, val_stride
+        self.num_workers, self.val_stride = num_workers, val_stride
         self.time_reversal, self.printed_repeat = time_reversal, printed_repeat
 
     def train_positions(self, fresh_validation: bool | None = None, val_tail: float = 0.0):
@@ -79,17 +98,24 @@ class SurrogateDataModule(L.LightningDataModule):
                                   val_variants=0 if fresh_validation else 1, val_tail=val_tail)["train"]
         return [self.positions[v, a:b + 1] for v, a, b in ranges]
 
+    def _val_ranges(self):
+        """The validation ranges; an error where there are none of their own (:func:`split_ranges` then gives the
+        test range, and selecting on it would grade the model on what it was selected by)."""
+        if self.ranges["val"] == self.ranges["test"]:
+            raise ValueError("SurrogateDataModule: nothing to validate on but the test range (the printed scene's "
+                             "last 40 %): give more variants than val_variants, val_tail > 0 or a val_dataset")
+        return self.ranges["val"]
+
     def _loader(self, split: str, shuffle: bool):
         if split == "val":
-            ds = RolloutWindows(self.val_positions, self.val_wrench, self.ranges["val"], self.eta, self.horizon,
+            ds = RolloutWindows(self.val_positions, self.val_wrench, self._val_ranges(), self.eta, self.horizon,
                                 self.val_inputs, stride=self.val_stride)
         else:  # training: the printed scene's range (variant 0, always the first) printed_repeat times
             train = self.ranges["train"]
             ds = RolloutWindows(self.positions, self.wrench, [train[0]] * (self.printed_repeat - 1) + train, self.eta,
                                 self.horizon, self.inputs, time_reversal=self.time_reversal)
-        g = torch.Generator().manual_seed(self.seed)
-        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=g if shuffle else None,
-                          num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle,
+                          generator=self.shuffle if shuffle else None, num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
 
     def train_dataloader(self):
         return self._loader("train", True)
@@ -101,7 +127,7 @@ class SurrogateDataModule(L.LightningDataModule):
         """The validation trajectories as one batch of free-running windows from their first frame:
         ``steps`` steps each (0: as many as the shortest range holds)."""
         W = self.eta + 1
-        n = min(b - a - W + 1 for _, a, b in self.ranges["val"])
+        n = min(b - a - W + 1 for _, a, b in self._val_ranges())
         n = min(n, steps) if steps > 0 else n
         windows = [RolloutWindows(self.val_positions, self.val_wrench, [(v, a, a + W - 1 + n)], self.eta, n,
                                   self.val_inputs)[0]
