@@ -73,8 +73,14 @@ def test_errt_finds_a_path_and_reuses_waypoints():
 
 def test_errt_reports_failure_on_a_sealed_map():
     box = np.array([[0.7, 0.7, 1.0, 0.72], [0.7, 0.7, 0.72, 1.0], [0.7, 0.98, 1.0, 1.0], [0.98, 0.7, 1.0, 1.0]])
-    planner = ERRT((0, 0, 1, 1), step=0.05, max_nodes=300, seed=0)
+    planner = ERRT((0, 0, 1, 1), step=0.05, max_nodes=300, seed=0)  # the default margin, 0
     assert planner.plan((0.1, 0.1), (0.85, 0.85), box) is None
+    assert len(planner.tree) > 300  # it searched the whole node budget before it gave up
+    assert planner.plan((0.1, 0.1), (0.9, 0.9), np.zeros((0, 4))) == [(0.1, 0.1), (0.9, 0.9)]  # straight across
+    wall = np.array([[0.4, 0.0, 0.5, 0.6]])
+    path = planner.plan((0.1, 0.1), (0.9, 0.9), wall)
+    assert path is not None and len(path) > 2 and path_ok(path, wall)
+    assert planner.plan((0.45, 0.3), (0.9, 0.9), wall) is None  # a start inside an obstacle
     with pytest.raises(ValueError, match="bounds"):
         ERRT((1, 0, 0, 1))
 

@@ -221,6 +221,21 @@ def test_quick_training_turns_the_greedy_action_to_the_goal(tmp_path, east):
     assert success_rate(env, trained, 10) >= 0.8, seed
 
 
+def test_training_with_one_seed_gives_one_agent(tmp_path):
+    """Two runs of one seed train the same weights: the collector's environments start from their seeded reset (the
+    collector resets them once unseeded when it is built). Also: pre-training with no margin loss
+    (``margin_weight=0``) logs and runs."""
+    cfg = dict(num_envs=2, frames_per_batch=10, total_frames=40, init_random_frames=10, n_steps=3, network=dict(SMALL),
+               max_steps=30, updates_per_batch=2, progress=False, eval_episodes=1, eval_every=10**6,
+               checkpoint_every=10**6, seed=0, demo_episodes=2, pretrain_updates=2, margin_weight=0.0)
+    weights = []
+    for k in range(2):
+        res = train_agent(AgentTrainConfig(out=str(tmp_path / f"run{k}"), **cfg), maps=[corridor()], log=lambda s: None)
+        weights.append(load_agent(res.agent_path)[0].state_dict())
+    assert weights[0].keys() == weights[1].keys()
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
 def test_interrupted_run_resumes_and_states_the_replay_buffer(tmp_path):
     maps = [corridor()]
     base = dict(total_frames=384, init_random_frames=64, num_envs=2, frames_per_batch=16, updates_per_batch=2,

@@ -129,6 +129,33 @@ def test_disturbance_and_switching_controller_recapture():
     assert (traj[:, 4] == 1).sum() == info["sc1_steps"] and (traj[:, 4] == 0).sum() == 1
 
 
+def test_each_recapture_starts_without_the_last_ones_velocity_estimate():
+    """Sub-controller 1 estimates the particle's velocity from its last call; a new recapture (after Sub-controller 2
+    steps and a new drag) starts without one, not from where the particle was when the last recapture ended."""
+    env = make([open_square()], disturbance=DisturbanceConfig(at_steps=(1, 4), magnitude=(0.11, 0.12), min_step=0))
+    env.reset(seed=2, options={"start": (0.005, 0.455), "goal": (0.085, 0.455)})
+    env.atlas.view = lambda x, y: np.full((84, 84), 200, np.uint8)
+    phases, first_calls = [], []
+    recapture, sc1 = env._recapture, type(env.sc1).__call__
+
+    def counted():
+        phases.append(len(phases))
+        return recapture()
+
+    def spied(self, *args):
+        if len(first_calls) < len(phases):
+            first_calls.append(self._last)
+        return sc1(self, *args)
+    env._recapture = counted
+    type(env.sc1).__call__ = spied
+    try:
+        for a in (3, 0, 0, 0, 0):
+            info = env.step(a)[-1]
+    finally:
+        type(env.sc1).__call__ = sc1
+    assert info["disturbances"] == 2 and len(phases) == 2 and first_calls == [None, None]
+
+
 def test_switching_distance_decides_who_brings_a_dragged_particle_back():
     """A particle dragged 7 cm: past the default 5 cm Sub-controller 1 recaptures it; under the
     thesis's 10 cm nobody does (the magnet's pull alone acts on it while Sub-controller 2 goes on)."""

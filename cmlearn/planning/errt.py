@@ -68,10 +68,11 @@ class ERRT:
         """Path [start, ..., goal] avoiding ``rects`` (n, 4), or None."""
         rects = np.asarray(rects, dtype=float).reshape(-1, 4)
         start, goal = tuple(map(float, start)), tuple(map(float, goal))
-        # a start or goal closer to an obstacle than the margin shrinks the margin (never below 0)
-        margin = min(self.margin, 0.9 * self.distance(start, rects), 0.9 * self.distance(goal, rects))
-        if margin <= 0:
+        # a start or goal inside an obstacle has no path; one closer to an obstacle than the margin shrinks it
+        clearance = min(self.distance(start, rects), self.distance(goal, rects))
+        if clearance <= 0:
             return None
+        margin = min(self.margin, 0.9 * clearance)
         saved, self.margin = self.margin, margin
         try:
             return self._plan(start, goal, rects)

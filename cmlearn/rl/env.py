@@ -298,6 +298,7 @@ class MagneticParticleEnv(gym.Env):
 
     def _recapture(self):
         self.controller = 1
+        self.sc1.reset()  # a new tracking phase: no velocity estimate from the particle of an earlier one
         for _ in range(self.config.sc1_max_steps):
             target, q = self._joint_limited(self.sc1(self.ee, self.sim.position, self.config.control_period))
             self.sc1_steps += 1

@@ -185,6 +185,7 @@ def _make_collector(cfg: AgentTrainConfig, actor, env_kwargs: dict, start_seed: 
         make = _BatchedFactory(cfg.num_envs, env_kwargs)
         col = MultiSyncCollector([make] * cfg.workers, actor, cat_results="stack", **common)
     col.set_seed(start_seed)
+    col.reset()  # the constructor reset the env before it was seeded: start every env from its seeded reset
     return col
 
 
@@ -349,9 +350,9 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
             updates += 1
             if (i + 1) % 500 == 0 or i + 1 == cfg.pretrain_updates:
                 log_scalar("pretrain/loss", out_td["loss"].item(), updates)
-                log_scalar("pretrain/margin_loss", float(out_td["margin_loss"]), updates)
+                log_scalar("pretrain/margin_loss", float(out_td.get("margin_loss", 0.0)), updates)
         log(f"pre-trained on demonstrations: {cfg.pretrain_updates} updates in {time.perf_counter() - t_pre:.1f} s, "
-            f"loss {out_td['loss'].item():.4f}, margin loss {float(out_td['margin_loss']):.4f}")
+            f"loss {out_td['loss'].item():.4f}, margin loss {float(out_td.get('margin_loss', 0.0)):.4f}")
         wall_before += time.perf_counter() - t_pre
         ev = evaluate(wall_before, phase="pretrain")
         log(f"after pre-training: eval success {ev['success_rate']:.3f} steps {ev['mean_steps']:.1f}")
