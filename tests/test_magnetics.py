@@ -117,6 +117,21 @@ def test_batching_superposition_and_dtypes():
     finally:
         src_mod._CHUNK_ELEMENTS = old
     assert torch.allclose(B2, B) and torch.allclose(G2, G)
+    # sources batched (a magnet at two poses), points shared and chunked unevenly (2 points a chunk, 5 points)
+    R2 = torch.linalg.matrix_exp(torch.tensor([[0, -0.3, 0.0], [0.3, 0, 0.0], [0.0, 0.0, 0]], dtype=D))
+    poses = DipoleSet(torch.stack([pos, pos @ R2.T]), torch.stack([mom, mom @ R2.T]))
+    d = pts[0, :, None, None, :] - poses.positions  # (5, 2, 40, 3)
+    want = dipole_field(d, poses.moments).sum(-2).transpose(0, 1), \
+        dipole_field_gradient(d, poses.moments).sum(-3).transpose(0, 1)
+    old, src_mod._CHUNK_ELEMENTS = src_mod._CHUNK_ELEMENTS, 80
+    try:
+        got, Bc = poses.field_and_gradient(pts[0]), poses.field(pts[0])
+    finally:
+        src_mod._CHUNK_ELEMENTS = old
+    assert got[0].shape == (2, 5, 3) and got[1].shape == (2, 5, 3, 3)
+    assert torch.allclose(got[0], want[0], rtol=1e-12, atol=1e-20) and torch.allclose(Bc, want[0], rtol=1e-12,
+                                                                                       atol=1e-20)
+    assert torch.allclose(got[1], want[1], rtol=1e-11, atol=1e-18)
     # float32: same answer to single precision
     B32 = DipoleSet(pos.float(), mom.float()).field(pts.float())
     assert B32.dtype == torch.float32 and rel(B32.double(), B) < 1e-5

@@ -96,7 +96,7 @@ class DipoleSet(FieldModel):
             return fn(points)
         outs = [fn(points[..., i:i + step, :]) for i in range(0, P, step)]
         if isinstance(outs[0], tuple):
-            return tuple(torch.cat(o, dim=-2 if o[0].dim() == points.dim() else -3) for o in zip(*outs))
+            return tuple(torch.cat(o, dim=-2 - k) for k, o in enumerate(zip(*outs)))  # B (..., P, 3), dB (..., P, 3, 3)
         return torch.cat(outs, dim=-2)
 
     # --- field, gradient, wrench -----------------------------------------------------------------------
