@@ -103,6 +103,10 @@ def test_loop_gradient_closed_form_vs_autograd_and_fd():
     # the gradient itself is differentiable (e.g. for force sensitivities)
     x = pts[:3].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda p: loop.field_and_gradient(p)[1], (x,))
+    # also on the axis (where the radial direction is undefined), its centre included
+    n = torch.tensor([1.0, 2.0, -0.5], dtype=F64) / math.sqrt(5.25)
+    on_axis = (torch.tensor([0.01, 0.0, -0.02], dtype=F64) + torch.tensor([0.0, 0.01, -0.03])[:, None] * n)
+    assert torch.autograd.gradcheck(lambda p: loop.field_and_gradient(p)[1], (on_axis.requires_grad_(True),))
 
 
 def test_loop_float32_and_batch_dims():

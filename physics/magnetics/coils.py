@@ -74,7 +74,7 @@ def _loop_core(d: Tensor, n: Tensor, a: Tensor, n_iter: int, gradient: bool):
     quantity ``x(rho, z)`` (in units of ``a``) carries ``dx = (dx/drho, dx/dz)`` (..., 2), and with
     ``B = f r + g n``, ``e = r / rho``::
 
-        dB = f (1 - n n^T) + rho f_rho e e^T + rho f_z e n^T + g_rho n e^T + g_z n n^T
+        dB = f (1 - n n^T) + rho f_rho e e^T + rho f_z e n^T + g_rho n e^T + g_z n n^T,   g_rho = rho f_z
     """
     z = (d * n).sum(-1)
     rv = d - z[..., None] * n
@@ -114,13 +114,15 @@ def _loop_core(d: Tensor, n: Tensor, a: Tensor, n_iter: int, gradient: bool):
     dgh = dpref * X(E - 4 * uh * w) + X(pref) * (dE - 4 * (duh * X(w) + X(uh) * dw))
     # to metres and Cartesian axes
     f = fh * inv_a
-    rf_r, rf_z = rh * dfh[..., 0] * inv_a, rh * dfh[..., 1] * inv_a  # rho f_rho, rho f_z
-    g_r, g_z = dgh[..., 0] * inv_a, dgh[..., 1] * inv_a
+    rf_r, f_z = rh * dfh[..., 0] * inv_a, dfh[..., 1] * inv_a * inv_a  # rho f_rho, f_z
+    g_z = dgh[..., 1] * inv_a
     e = rv / X(torch.where(pos, rh * a, 1.0))
     outer = lambda u, v: u[..., :, None] * v[..., None, :]
     nn = outer(n, n)
     eye = torch.eye(3, dtype=d.dtype, device=d.device)
-    dB = (X(X(f)) * (eye - nn) + X(X(rf_r)) * outer(e, e) + X(X(rf_z)) * outer(e, n) + X(X(g_r)) * outer(n, e)
+    # the field is curl-free, g_rho = rho f_z: the mixed terms are f_z (r n^T + n r^T), written with r = rho e so
+    # that their own derivatives (autograd of dB) hold on the axis too, where e is undefined
+    dB = (X(X(f)) * (eye - nn) + X(X(rf_r)) * outer(e, e) + X(X(f_z)) * (outer(rv, n) + outer(n, rv))
           + X(X(g_z)) * nn)
     return B, dB
 

@@ -133,7 +133,9 @@ class CoilFieldTable(FieldModel):
     def unit_field_and_gradient(self, points: Tensor, gradient: bool = True, check: bool = True):
         """Unit-current maps ``beta`` (..., P, C, 3) (T/A) and ``beta_grad`` (..., P, C, 3, 3) (T/(m A)) at
         ``points`` (..., P, 3) in the tabulated ball (``check``: raise for a point outside; pass False in
-        programs compiled ahead of time, which check :meth:`outside` themselves). Computed in float64."""
+        programs compiled ahead of time, which check :meth:`outside` themselves). Computed in float64. The maps'
+        values hold on a coil's axis too, but not autograd through ``beta_grad`` there (the tabulated rho f_z and
+        g_rho multiply the undefined radial direction); the exact coils' gradient is differentiable everywhere."""
         if check:
             check_points(points)
             bad = self.outside(points)
