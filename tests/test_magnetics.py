@@ -142,6 +142,28 @@ def test_batching_superposition_and_dtypes():
     assert torch.allclose(moved.field(pts), DipoleSet(pos @ R.T + p, mom @ R.T).field(pts), rtol=1e-12, atol=1e-20)
 
 
+def test_a_sum_with_a_time_varying_field_follows_the_time():
+    """A sum of models as the solvers' hook passes the time on: a rotating uniform field plus a static dipole set
+    gives the sum of each part's hook and wrench at that time, and the rotating part's field at no time is an
+    error naming B."""
+    g = torch.Generator().manual_seed(4)
+    spin = UniformField(lambda t: 1e-3 * torch.tensor([math.cos(t), math.sin(t), 0.0], dtype=D))
+    dipoles = DipoleSet(0.01 * torch.randn(6, 3, generator=g, dtype=D), torch.randn(6, 3, generator=g, dtype=D))
+    both = spin + dipoles
+    pts, mom = 0.1 + 0.02 * torch.randn(3, 3, generator=g, dtype=D), torch.randn(3, 3, generator=g, dtype=D)
+    for t in (0.0, 2.0):
+        B, dB = both(t, pts)
+        assert torch.allclose(B, spin(t, pts) + dipoles.field(pts), rtol=1e-12, atol=0)
+        assert torch.equal(dB, dipoles.field_and_gradient(pts)[1])
+        F, T = both.wrench(t, pts, mom)
+        Fs, Ts = spin.wrench(t, pts, mom)
+        Fd, Td = dipoles.force_torque(pts, mom)
+        assert torch.allclose(F, Fs + Fd, rtol=1e-12, atol=0) and torch.allclose(T, Ts + Td, rtol=1e-12, atol=0)
+    assert not torch.allclose(both.wrench(0.0, pts, mom)[1], both.wrench(2.0, pts, mom)[1])
+    with pytest.raises(ValueError, match="B is a function of time"):
+        both.field(pts)
+
+
 def test_singular_distance_raises_or_is_softened():
     m = torch.tensor([0.0, 0.0, 1.0], dtype=D)
     with pytest.raises(ValueError, match="points"):

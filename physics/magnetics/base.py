@@ -74,6 +74,19 @@ class Superposition(FieldModel):
     def field(self, points):
         return sum(mdl.field(points) for mdl in self.models)
 
+    def __call__(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """Solver hook: the parts' fields at time ``t`` summed (a part that gives ``B`` alone adds no gradient)."""
+        B, dB = 0, 0
+        for mdl in self.models:
+            out = mdl(t, positions)
+            B, dB = (B + out[0], dB + out[1]) if isinstance(out, tuple) else (B + out, dB)
+        return B, dB + torch.zeros(*B.shape, 3, dtype=B.dtype, device=B.device)
+
+    def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
+        """Solver hook: the parts' wrenches at time ``t`` summed."""
+        parts = [mdl.wrench(t, positions, moments) for mdl in self.models]
+        return sum(p[0] for p in parts), sum(p[1] for p in parts)
+
 
 class TimeVarying:
     """A time-dependent field for the solvers' hook: ``make(t) -> FieldModel`` evaluated at each call
@@ -101,6 +114,9 @@ class UniformField(FieldModel):
         self.B = B
 
     def _at(self, t, points: Tensor) -> Tensor:
+        if callable(self.B) and t is None:
+            raise ValueError("UniformField: B is a function of time; evaluate it at a time t as a solver hook, "
+                             "model(t, points) or model.wrench(t, points, moments)")
         B = self.B(t) if callable(self.B) else self.B
         return torch.as_tensor(B, dtype=points.dtype, device=points.device).expand(points.shape)
 
