@@ -17,8 +17,9 @@ linearly, ``beta_c(x) ~ beta_c(x0) + d beta_c(x0) (x - x0)``, until some magnet 
 coils >= 65 mm away the field is within ~1e-5 and the gradient within ~0.5 % of the exact
 superposition, at a fraction of its cost (an exact coil evaluation costs ~1 ms, a solver step
 here ~0.1 ms). The cache is the only state: it is dropped when the hook is called at an earlier
-time than before or with another batch shape (a new run), and :meth:`CoilField.fresh` gives an
-independent copy, so that a run's result does not depend on what was evaluated before it.
+time than before or with another batch shape (a new run). A run that starts at the very time of the last
+call (two runs from t = 0) keeps the maps, which differ from its own by less than ``tol`` of motion; a run
+whose result must not depend on what was evaluated before it takes :meth:`CoilField.fresh`, an independent copy.
 
 The profiles and the hook are traceable: while traced for a compiled program (:func:`physics.programs.is_tracing`:
 the LGVI's compiled blocks of steps, :meth:`physics.lgvi.LGVI.compiled_rollout`) a profile is evaluated in tensor
