@@ -157,6 +157,12 @@ def test_checkpoint_acts_deterministically_and_bad_files_give_clear_errors(tmp_p
     (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
     with pytest.raises(CheckpointError, match="truncated"):
         load_agent(tmp_path / "cut.pt")
+    blob = torch.load(path, weights_only=True)  # a weight changed where the archive still reads (bit rot)
+    name = next(iter(blob["state_dict"]))
+    blob["state_dict"][name].view(-1)[0] += 1e-6
+    torch.save(blob, tmp_path / "rotten.pt")
+    with pytest.raises(CheckpointError, match="do not match their stored SHA-256"):
+        load_agent(tmp_path / "rotten.pt")
     with pytest.raises(CheckpointError, match="no such"):
         load_agent(tmp_path / "missing.pt")
 

@@ -1076,9 +1076,23 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
         load_checkpoint(tmp_path / "corrupt.pt")
     with pytest.raises(CheckpointError, match="no such"):
         load_checkpoint(tmp_path / "missing.pt")
+    blob = torch.load(path, weights_only=True)  # a weight changed where the archive still reads (bit rot)
+    blob["state_dict"]["head.0.weight"].view(-1)[3] += 1e-6
+    torch.save(blob, tmp_path / "rotten.pt")
+    with pytest.raises(CheckpointError, match="do not match their stored SHA-256"):
+        load_checkpoint(tmp_path / "rotten.pt")
     torch.save({"format": "something-else"}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="not a cmlearn-surrogate"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+def test_every_shipped_checkpoint_carries_the_digest_of_its_weights():
+    from cmlearn.io import weights_digest
+    shipped = sorted((ROOT / "checkpoints").glob("*.pt"))
+    assert len(shipped) >= 7
+    for path in shipped:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        assert blob["weights_sha256"] == weights_digest(blob["state_dict"]), path
 
 
 def test_a_runaway_rollout_is_a_divergence_error_naming_step_time_and_node():

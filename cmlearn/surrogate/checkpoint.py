@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.io import CheckpointError, save_torch_atomic, write_text_atomic
+from cmlearn.io import CheckpointError, check_weights, save_torch_atomic, weights_digest, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
 __all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "read_blob", "load_checkpoint", "surrogate_checkpoints", "provenance"]
@@ -27,8 +27,9 @@ _CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
 def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> Path:
     path = Path(path)
     meta = json.loads(json.dumps(meta, default=str))  # plain types only: loadable with weights_only=True
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     blob = {"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
-            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta}
+            "state_dict": state, "weights_sha256": weights_digest(state), "meta": meta}
     save_torch_atomic(path, blob)
     write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2, default=str) + "\n")
     return path
@@ -37,7 +38,7 @@ def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> P
 def read_blob(path: str | Path, fmt: str, task: str | None = None) -> tuple[dict, dict]:
     """The dict a checkpoint of format ``fmt`` holds, and its metadata, loaded on the CPU with
     ``weights_only``; :class:`CheckpointError` for a missing, unreadable or truncated file, another format,
-    or (``task`` given) another task."""
+    weights that differ from their stored digest, or (``task`` given) another task."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
@@ -47,6 +48,7 @@ def read_blob(path: str | Path, fmt: str, task: str | None = None) -> tuple[dict
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
     if not isinstance(blob, dict) or blob.get("format") != fmt:
         raise CheckpointError(f"{path}: not a {fmt} checkpoint")
+    check_weights(path, blob)
     meta = blob.get("meta", {})
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")

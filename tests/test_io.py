@@ -1,0 +1,23 @@
+"""Atomic writes: a failed write keeps the old file, a finished one is flushed to disk before it takes its place."""
+import os
+
+import pytest
+
+from cmlearn import io
+
+
+def test_atomic_write_keeps_the_old_file_on_failure_and_syncs_the_new_one(tmp_path, monkeypatch):
+    path = tmp_path / "table.md"
+    io.write_text_atomic(path, "old\n")
+
+    def broken(f):
+        f.write(b"half")
+        raise OSError("disk full")
+    with pytest.raises(OSError, match="disk full"):
+        io.atomic_write(path, broken)
+    assert path.read_text() == "old\n" and sorted(p.name for p in tmp_path.iterdir()) == ["table.md"]
+    synced, fsync = [], os.fsync
+    monkeypatch.setattr(io.os, "fsync", lambda fd: synced.append(os.fstat(fd).st_size) or fsync(fd))
+    io.write_text_atomic(path, "new\n")
+    assert path.read_text() == "new\n"
+    assert synced[0] == 4 and len(synced) == 2  # the file's four bytes, then the folder's entry
