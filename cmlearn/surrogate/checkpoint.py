@@ -3,7 +3,10 @@
 A checkpoint is a ``torch.save`` dict::
 
     {"format": "cmlearn-surrogate/1", "model_class": "NodeLSTMSurrogate", "config": {...},
-     "state_dict": {...}, "meta": {"task", "scene", "data_hash", "metrics", "command", "version", ...}}
+     "state_dict": {...}, "weights_sha256": "...",
+     "meta": {"task", "scene", "data_hash", "metrics", "command", "version", ...}}
+
+(``weights_sha256``: :func:`cmlearn.io.weights_digest` of the state dict, checked on load)
 
 with a JSON copy of ``meta`` next to it (``<name>.json``) for humans and tools.
 """
