@@ -126,6 +126,7 @@ def run_filtered_model(model: LGVI, state: LGVIState, filt: DistributedDampingFi
     each step uses the current estimate as the model's damping. Returns the model positions
     (..., T, n, 3) and the final filter state."""
     model = copy.copy(model)  # its damping changes every step; the filters keep the undamped one
+    model._compiled = {}  # a copy's programs are its own (a shallow copy would share the original's)
     base = model.params
     model.params = base._replace(damping=torch.zeros_like(base.damping))
     state = model.step(state)

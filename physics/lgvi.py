@@ -48,7 +48,8 @@ class Boundary(str, Enum):
 
 class LGVIState(NamedTuple):
     """Positions ``p`` (..., n, 3) at ``t``; half-step velocities ``v = (p^j - p^{j-1})/h``;
-    rotations ``R`` (..., n, 3, 3); body angular momenta ``pi`` (..., n, 3); step counter."""
+    rotations ``R`` (..., n, 3, 3); body angular momenta ``pi`` (..., n, 3); step counter; the time ``t0`` the
+    counter started at (``t`` is ``t0 + step * dt``: summed step by step it would drift)."""
 
     t: float
     p: Tensor
@@ -56,6 +57,7 @@ class LGVIState(NamedTuple):
     R: Tensor
     pi: Tensor
     step: int = 0
+    t0: float = 0.0
 
 
 class Trajectory(NamedTuple):
@@ -181,6 +183,16 @@ class LGVI:
                 if self.stability == "raise":
                     raise ValueError(msg)
                 warnings.warn(msg, RuntimeWarning, stacklevel=2)
+        if self.stability != "off":  # the damping is explicit: a velocity or spin decays by (1 - c dt / m) a step
+            prm = self.params
+            damped = max(float((prm.damping * self.dt / prm.mass[..., None]).max()),
+                         float((prm.rot_damping * self.dt / prm.inertia).max()))
+            if damped >= 2.0:
+                msg = (f"LGVI.dt={self.dt:.4g} s with this damping makes its explicit update unstable: "
+                       f"damping dt / mass (or rot_damping dt / inertia) is {damped:.3g}, and must stay below 2")
+                if self.stability == "raise":
+                    raise ValueError(msg)
+                warnings.warn(msg, RuntimeWarning, stacklevel=2)
         n = self.params.n_nodes
         fixed = {Boundary.CLAMPED_FREE: [0], Boundary.CLAMPED_CLAMPED: [0, n - 1],
                  Boundary.FREE_FREE: [], Boundary.PRESCRIBED_BASE: [0]}[self.bc]
@@ -204,7 +216,7 @@ class LGVI:
         n = prm.n_nodes
         kw = dict(dtype=self.dtype, device=self.device)
         if p is None:
-            s = torch.cat((torch.zeros(1, **kw), prm.l.cumsum(-1)))
+            s = torch.cat((torch.zeros_like(prm.l[..., :1]), prm.l.cumsum(-1)), -1)
             p = torch.zeros(*s.shape, 3, **kw)
             p[..., 2] = s
         p = torch.as_tensor(p, **kw)
@@ -227,7 +239,7 @@ class LGVI:
         # the state holds v^{-1/2} and the momentum before the first torque kick: step back half a
         # kick from the given velocities (velocity-Verlet start, keeps the scheme second order)
         state = LGVIState(float(t), p.contiguous(), (v * self._free).contiguous(), R.contiguous(),
-                          (pi * self._free).contiguous(), 0)
+                          (pi * self._free).contiguous(), 0, float(t))
         return self._half_kick(state, -0.5)
 
     def _half_kick(self, state: LGVIState, frac: float) -> LGVIState:
@@ -283,11 +295,17 @@ class LGVI:
     def _tensor_time(self, t: float) -> Tensor:
         return torch.tensor(t, dtype=self.dtype, device=self.device)
 
+    def _time_after(self, state: LGVIState, steps: int) -> float:
+        """The time ``steps`` steps after ``state``: its counter's start time plus a whole number of steps (summing
+        ``dt`` step by step drifts: 5,000 steps of 1e-4 s ended at 0.49999999999996 s, inside a load window that ends
+        at 0.5 s)."""
+        return state.t0 + (state.step + steps) * self.dt
+
     def step(self, state: LGVIState, *, _return_info: bool = False):
         """One step ``t -> t + dt`` (pure: inputs are not modified)."""
         _, p, v, R, pi, iters, res = self._advance(self._tensor_time(state.t), state.p, state.v, state.R,
                                                    state.pi, self.newton_iters)
-        new = LGVIState(state.t + self.dt, p, v, R, pi, state.step + 1)
+        new = LGVIState(self._time_after(state, 1), p, v, R, pi, state.step + 1, state.t0)
         return (new, (iters, res)) if _return_info else new
 
     def _apply_base(self, p_old, R_old, p, v, R, pi, t):
@@ -343,7 +361,9 @@ class LGVI:
         self.eager_blocks = 0
         fn = None
         for c in range(n_steps // steps_per_call):
-            good = LGVIState(state.t + c * steps_per_call * self.dt, p, v, R, pi, state.step + c * steps_per_call)
+            good = LGVIState(self._time_after(state, c * steps_per_call), p, v, R, pi, state.step + c * steps_per_call,
+                             state.t0)
+            t = self._tensor_time(good.t)
             until = good.step + steps_per_call
             if field is not None and not field.block_ready(good.t, p):
                 out = None
@@ -369,7 +389,7 @@ class LGVI:
                 rec.append(p)
                 if rec_R is not None:
                     rec_R.append(R)
-        out = LGVIState(state.t + n_steps * self.dt, p, v, R, pi, state.step + n_steps)
+        out = LGVIState(self._time_after(state, n_steps), p, v, R, pi, state.step + n_steps, state.t0)
         frames = torch.stack(rec, -3) if record_every else None
         if record_R:
             return out, frames, (torch.stack(rec_R, -4) if record_every else None)
@@ -377,20 +397,22 @@ class LGVI:
 
     def _fused_program(self, inputs: tuple[Tensor, ...], steps: int, newton_iters: int, field):
         """``fn(t, p, v, R, pi) -> (t, p, v, R, pi, largest Newton residual, largest field drift)`` after ``steps``
-        steps, compiled for the shapes, dtype and device of ``inputs`` (these five; kept per key)."""
+        steps, compiled for the shapes, dtype and device of ``inputs`` (these five; kept per key, and only while the
+        integrator's step, parameters and loads are the objects it was traced with: they are its constants)."""
         p = inputs[1]
-        key = (steps, newton_iters, tuple(p.shape), p.dtype, p.device)
-        fn = self._compiled.get(key)
-        if fn is not None:
-            return fn
+        key = (steps, newton_iters, tuple(p.shape), p.dtype, p.device, self.dt)
+        kept = self._compiled.get(key)
+        if kept is not None and kept[1] is self.params and kept[2] is self.loads:
+            return kept[0]
 
         def fused(t, p, v, R, pi):
             res_max = torch.zeros((), dtype=p.dtype, device=p.device)
             drift = torch.zeros((), dtype=p.dtype, device=p.device)
-            for _ in range(steps):
+            t0 = t
+            for k in range(steps):  # each step's time from the block's start (no drift, as the eager steps)
                 if field is not None:  # where this step evaluates the field
                     drift = torch.maximum(drift, field.drift(magnet_positions(p, self.params)))
-                t, p, v, R, pi, _, res = self._advance(t, p, v, R, pi, newton_iters, check=False)
+                t, p, v, R, pi, _, res = self._advance(t0 + k * self.dt, p, v, R, pi, newton_iters, check=False)
                 res_max = torch.maximum(res_max, res.amax())
             return t, p, v, R, pi, res_max, drift
         fn = None
@@ -409,7 +431,7 @@ class LGVI:
                               RuntimeWarning, stacklevel=3)
         if fn is None:
             fn = torch.compile(fused, dynamic=False, fullgraph=False)
-        self._compiled[key] = fn
+        self._compiled[key] = (fn, self.params, self.loads)
         return fn
 
     def _residual_limit(self) -> float:
@@ -444,10 +466,13 @@ class LGVI:
         iters = torch.zeros(n_steps, dtype=torch.int32)
         worst = 0.0
         last_good = state
+        res_max = None  # the largest Newton residual since the last check (every step's counts, not the last's)
         for k in range(n_steps):
             state, (it, res) = self.step(state, _return_info=True)
             iters[k] = it
+            res_max = res if res_max is None else torch.maximum(res_max, res)
             if (k + 1) % self.check_every == 0 or k + 1 == n_steps:
+                res, res_max = res_max, None
                 try:
                     self._check(state, res)
                 except SolverError:

@@ -72,7 +72,11 @@ def _reduced(rod, bc: str, energy_fn=elastic_energy):
 
 
 def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elastic_energy) -> torch.Tensor:
-    """Lowest ``n_modes`` non-rigid angular frequencies (rad/s), float64."""
+    """Lowest ``n_modes`` non-rigid angular frequencies (rad/s), float64, of the rod linearised about the straight
+    configuration: an error for a rod with intrinsic curvature, whose straight configuration is no equilibrium."""
+    if any(k != 0 for k in getattr(rod, "intrinsic_curvature", (0.0, 0.0, 0.0))):
+        raise ValueError("frequencies: the modes are those about the straight rod, and a rod with "
+                         f"intrinsic_curvature {tuple(rod.intrinsic_curvature)} is not at rest straight")
     A = _reduced(rod, bc, energy_fn)
     n_rigid = 6 if bc == "free-free" else 0
     k = min(n_modes + n_rigid, A.shape[0])

@@ -240,6 +240,60 @@ def test_newton_failure_is_reported():
         sim.simulate(sim.initial_state(omega=w), n_steps=3)
 
 
+def test_a_newton_failure_between_checks_is_reported_at_its_step():
+    """With check_every > 1 every step's residual counts, not only the checked step's: a one-step torque that
+    leaves step 3 unconverged (2 fixed Newton iterations) is reported at step 3, also when steps 4 and 5 converge."""
+    rod = pdms_rod(10)
+    dt = 0.5 * rod.stable_time_step().dt_max
+
+    def kick(t):
+        if round(float(t) / dt) == 2:
+            T = torch.zeros(rod.n_nodes, 3, dtype=D)
+            T[-1, 0] = 2.5e-3
+            return T
+    for every in (1, 5):
+        sim = LGVI(rod, dt=dt, loads=Loads(torque=kick), newton_iters=2, check_every=every)
+        with pytest.raises(SolverError, match="Newton") as err:
+            sim.simulate(sim.initial_state(), n_steps=10)
+        assert err.value.step == 3 and err.value.node == rod.n_nodes - 1
+
+
+def test_the_time_is_the_start_plus_whole_steps():
+    """Steps of 1e-4 s end at 0.5 s after 5,000 (summed one by one they ended at 0.49999999999996, inside a load
+    window [0, 0.5)), so a pulse over [0, 0.5) acts for 5,000 steps."""
+    rod = pdms_rod(2)
+    seen = []
+
+    def force(t):
+        seen.append(float(t) < 0.5)
+    sim = LGVI(rod, dt=1e-4, loads=Loads(force=force), stability="off")
+    end, traj = sim.simulate(sim.initial_state(), n_steps=5001, record_every=1000)
+    assert traj.t[5].item() == 0.5 and end.step == 5001
+    assert len(seen) == 5002 and sum(seen) == 5001  # the start's half kick and steps 0..4999; step 5000 at 0.5 s
+    assert not seen[-1]
+    later = sim.initial_state(t=1.0)
+    assert sim.simulate(later, n_steps=10_000, record_every=10**9)[0].t == 2.0
+
+
+def test_damping_too_strong_for_the_step_is_refused():
+    """The damping is explicit: c dt / m (or c_r dt / J) of 2 or more grows a velocity instead of damping it."""
+    rod = pdms_rod(10, rotational_damping=3e-4)
+    with pytest.raises(ValueError, match="damping.*must stay below 2"):
+        LGVI(rod, dt=0.5 * rod.stable_time_step().dt_max)
+    LGVI(pdms_rod(10, rotational_damping=1e-4), dt=0.5 * rod.stable_time_step().dt_max)  # c dt / J = 0.68
+
+
+def test_default_initial_state_of_batched_params():
+    rod = pdms_rod(6)
+    prm = rod.params()
+    batched = prm._replace(**{k: getattr(prm, k).expand(2, *getattr(prm, k).shape).clone()
+                              for k in ("l", "C1", "C2", "kappa0", "mass", "inertia", "damping", "rot_damping")})
+    sim = LGVI(None, dt=safe_dt(rod), params=batched)
+    state = sim.initial_state()
+    assert state.p.shape == (2, rod.n_nodes, 3)
+    assert torch.allclose(state.p[1, :, 2], torch.cat((torch.zeros(1, dtype=D), prm.l.cumsum(0))))
+
+
 def test_prescribed_base_translation_moves_rod_rigidly():
     rod = pdms_rod(5)
     vel = torch.tensor([0.01, -0.02, 0.03], dtype=D)

@@ -122,3 +122,11 @@ def test_frequency_correction():
     assert w == pytest.approx(corrected.euler_bernoulli_first_frequency(), rel=1e-6)
     with pytest.raises(ValueError, match="bc"):
         aluminium_rod(4).natural_frequencies(bc="hinged")
+    # a mesh correction: a tip magnet's mass lowers the frequency physically and changes nothing of it
+    bare = pdms_rod(10)
+    tipped = pdms_rod(10, magnets=(Magnet(s=bare.length, mass=2e-3),))
+    assert float(tipped.natural_frequencies(n_modes=1)[0]) < 0.8 * float(bare.natural_frequencies(n_modes=1)[0])
+    assert tipped.frequency_correction() == bare.frequency_correction()
+    # the modes are about the straight rod: one with intrinsic curvature is not at rest there
+    with pytest.raises(ValueError, match="intrinsic_curvature"):
+        aluminium_rod(4, intrinsic_curvature=(20.0, 0.0, 0.0)).natural_frequencies()
