@@ -211,7 +211,8 @@ def _report(scene, s: dict) -> None:
     print(f"steps {s['n_steps']} x dt {s['dt']:g} s = {s['simulated_s']:.4g} s simulated "
           f"({s['dtype']}, {s['threads']} threads, {s['frames']} frames recorded)")
     print(f"wall time {s['wall_s']:.3f} s (setup {s['setup_s']:.3f} s); real-time factor "
-          f"{s['real_time_factor']:.4g} (simulated s per wall s)")
+          f"{s['real_time_factor']:.4g} (simulated s per wall s, recording every {s['record_every']} steps' positions, "
+          "rotations and energy included; scripts/bench/lgvi.py times the steps alone)")
     if e["conserved"]:
         print(f"energy: relative drift {e['relative_drift']:.3e} (max |E - E0| / max(|E0|, max kinetic); "
               f"E0 = {e['E0']:.6g} J)")

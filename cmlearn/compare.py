@@ -187,6 +187,9 @@ def run_compare(scene: str, checkpoint=None, duration=None, out: Path | None = N
               f"{res['speedup_vs_compiled_lgvi']:.0f}x")
     paths = _plots(res, out)
     summary = {k: v for k, v in res.items() if not k.startswith("_")}
+    summary["timing"] = {"threads": torch.get_num_threads(), "device": "cpu", "batch": 1, "dtype_lgvi": "float64",
+                         "dtype_surrogate": "float32", "note": "one run of each side, not paired (scripts/bench/ "
+                                                                 "surrogate.py pairs the step in interleaved rounds)"}
     js = out / "summary.json"
     atomic_write(js, lambda f: f.write(json.dumps(summary, indent=2).encode()))
     print(f"  wrote {', '.join(str(p) for p in paths + [js])} ({time.perf_counter() - t0:.1f} s)")

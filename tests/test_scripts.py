@@ -58,6 +58,7 @@ def test_bench_lgvi_quick(tmp_path):
                 "rtf_pdms_tip_magnet", "dtype", "threads", "device", "n_nodes", "batch"):
         assert key in res
     assert res["single_rod_us_per_step"] > 0 and res["tip_diff_vs_pyelastica_at_0.1s_pct_L"] < 10
+    assert res["pyelastica_batch_rods"] == res["batch"] == 8  # the same rods on both sides
 
 
 def test_bench_dataset_quick(tmp_path):
@@ -183,7 +184,8 @@ def test_bench_quasistatic_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/bench/quasistatic.py"), "--quick"], tmp_path)
     for key in ("hybrid_step_hz", "lgvi_step_hz", "lstm_closed_loop_step_hz", "speedup_per_simulated_second"):
         assert res[key] > 0, key
-    assert res["batch"] == 1 and res["check"]["sum_mean_deg"] < res["check"]["static_sum_mean_deg"] + 0.05
+    # over the printed profile's first second, whose currents start at 0.6 s: the hybrid errs less than its static rod
+    assert res["batch"] == 1 and 0 < res["check"]["sum_mean_deg"] < 0.5 * res["check"]["static_sum_mean_deg"]
 
 
 def test_bench_work_precision_quick(tmp_path):

@@ -87,7 +87,7 @@ def main(argv=None):
     def mp_dipoles():
         return np.concatenate([collection.getB(pts64[i:i + chunk].numpy()) for i in range(0, a.points, chunk)])
 
-    t_mp_dip = best_time(mp_dipoles, 1 if not a.quick else 1)
+    t_mp_dip = best_time(mp_dipoles, repeats)
 
     B = model.field(pts).double().numpy()
     B_exact = exact.getB(pts64.numpy())

@@ -98,10 +98,11 @@ def main(argv=None):
     ap.add_argument("--checkpoint", default="checkpoints/semicircle.pt")
     ap.add_argument("--scene", default="semicircle_heldout")
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--rounds", type=int, default=9)
-    ap.add_argument("--calls", type=int, default=400)
+    ap.add_argument("--rounds", type=int, default=0, help="default 9 (3 with --quick)")
+    ap.add_argument("--calls", type=int, default=0, help="default 400 (100 with --quick)")
     ap.add_argument("--threads", type=int, default=1)
     a = ap.parse_args(argv)
+    a.rounds, a.calls = a.rounds or (3 if a.quick else 9), a.calls or (100 if a.quick else 400)
     if a.rounds < 1 or a.calls < 1:
         raise SystemExit("--rounds and --calls must be >= 1")
     torch.set_num_threads(a.threads)
@@ -115,7 +116,7 @@ def main(argv=None):
     ref = p0[None].clone()
     mirrors = tuple(axis for axis, _ in model.config.reflections)
     settings = [mirrors] if a.quick or len(mirrors) != 2 else [mirrors, mirrors[-1:], ()]
-    rounds, n = (3, 100) if a.quick else (a.rounds, a.calls)
+    rounds, n = a.rounds, a.calls
     res = {"checkpoint": a.checkpoint, "scene": a.scene, "threads": a.threads, "batch": 1, "dtype": "float32",
            "rounds": rounds, "calls": n, "gemm_templates": not a.quick, "platform": platform.platform(), "images": {}}
     for axes in settings:
