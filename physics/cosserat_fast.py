@@ -503,12 +503,15 @@ def _sig(ts) -> tuple:
 def _prepared(solver, prm, loads, shp: tuple[int, ...], lanes: bool, step_tab):
     """The loop-invariant inputs of the iteration program for ``prm`` and ``loads``: ``(tabs, rows, rest
     without the field tensors, base position, base quaternion)``, cached while the same ``prm`` and
-    ``loads`` objects come back (the solver hands out one ``StaticLoads`` per set of number inputs)."""
+    ``loads`` objects come back, their values unchanged (the solver hands out one ``StaticLoads`` per set of number
+    inputs)."""
     from .cosserat import broadcast_shape
     from .cosserat_lanes import lane_tables
+    from .cosserat_shooting import tensor_versions
     key = (id(solver), id(prm), id(loads), shp, lanes)
     hit = _PREP.get(key)
-    if hit is not None and hit[0] is prm and hit[1] is loads and hit[2] is step_tab:
+    ver = tensor_versions(prm, loads)
+    if hit is not None and hit[0] is prm and hit[1] is loads and hit[2] is step_tab and hit[4] == ver:
         return hit[3]
     tabs = lane_tables(prm, solver.rod.grid, loads, step_tab)
     st, ld = tabs.step, tabs.loads
@@ -522,7 +525,7 @@ def _prepared(solver, prm, loads, shp: tuple[int, ...], lanes: bool, step_tab):
            _flat(loads.base_quaternion, shp, 1))
     if len(_PREP) >= 64:
         _PREP.clear()
-    _PREP[key] = (prm, loads, step_tab, out)  # (the references keep the ids from being reused)
+    _PREP[key] = (prm, loads, step_tab, out, ver)  # (the references keep the ids from being reused)
     return out
 
 

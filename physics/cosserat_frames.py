@@ -21,7 +21,8 @@ import torch
 from torch import Tensor
 
 from .cosserat_fast import chord_setup, flatten_field, lm_setup, run_chord, run_lm
-from .cosserat_shooting import _LAM_WARM, CHORD_MAX, CosseratSolver, StaticSolution, _broadcasts_to, _needs_grad
+from .cosserat_shooting import (_LAM_WARM, CHORD_MAX, CosseratSolver, StaticSolution, _broadcasts_to, _needs_grad,
+                                tensor_versions)
 
 __all__ = ["FrameSolve"]
 
@@ -44,7 +45,8 @@ class FrameSolve:
         self.solver, self.max_iter, self.t, self.load_kw = solver, int(max_iter), float(t), loads
         self.compiled = bool(compiled)
         self._loads = solver._loads(dict(loads))  # checked once (make_loads)
-        self._fkey = None  # the field structure the programs below were set up for
+        self._fkey = None  # the field structure, shapes and solver parameters the programs below were set up for
+        self._fprm = None
         self._chord = self._lm = None
 
     def __call__(self, field, init, chord: Tensor | None = None) -> StaticSolution:
@@ -55,7 +57,8 @@ class FrameSolve:
         w = init.base_wrench if isinstance(init, StaticSolution) else init
         if not isinstance(w, Tensor) or w.shape[-1:] != (6,) or (chord is not None and chord.shape[-2:] != (6, 6)):
             return self._solve(field, init, chord)  # (which names what is wrong)
-        if (flat[0], w.shape, chord is None or chord.shape) != self._fkey and not self._setup(field, flat, w, chord):
+        key = flat[0], w.shape, chord is None or chord.shape, tensor_versions(solver.params)
+        if (key != self._fkey or self._fprm is not solver.params) and not self._setup(field, flat, w, chord):
             return self._solve(field, init, chord)
         shp, N = self._shape, self._n
         ftens = [a.contiguous() for a in flat[1]]
@@ -104,5 +107,6 @@ class FrameSolve:
         self._chord = prog, starts, fixed[:len(fixed) - n_ftens]  # (the field's tensors come with each call)
         self._lm = chunks, lm_starts, base, lm_fixed[:len(lm_fixed) - n_ftens]
         self._shape, self._n, self._n_rec, self._its0, self._live = shp, N, n_rec, its, live
-        self._fkey = flat[0], w.shape, chord is None or chord.shape
+        self._fkey = flat[0], w.shape, chord is None or chord.shape, tensor_versions(self.solver.params)
+        self._fprm = self.solver.params
         return True

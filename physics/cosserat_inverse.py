@@ -31,18 +31,20 @@ def tip_angle(sol: StaticSolution, plane: tuple[int, int] = (0, 2)) -> Tensor:
 
 class FieldFit(NamedTuple):
     """Result of :func:`fit_uniform_field`: the field (3,) T, the tip angle reached (rad), the final
-    solution, the number of solves and the final loss."""
+    solution, the number of solves, the final loss, and whether the target was reached (the angle within the
+    fit's ``angle_tol``, its final solve converged)."""
 
     field: Tensor
     tip_angle: float
     solution: StaticSolution
     evaluations: int
     loss: float
+    reached: bool
 
 
 def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude: float | None = None,
                       field_angle: float | None = None, reg: float = 1e-4, max_evals: int = 40,
-                      **solve_kw) -> FieldFit:
+                      angle_tol: float = math.radians(0.5), **solve_kw) -> FieldFit:
     """Find a uniform field ``B = b (sin phi, 0, cos phi)`` (in the x-z plane) that turns the tip of
     ``solver``'s rod (base along +z) to ``target_angle`` (rad, from +z towards +x), by L-BFGS on
     ``((theta - target)/1 deg)^2 + reg (b/b_ref)^2`` with implicit gradients (module docstring). The
@@ -50,7 +52,9 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
     tip magnet: across the tip, ``b = E I theta / (L |mu|)``). ``magnitude`` (T) is ``b_ref`` and the
     start (default that estimate from the tip-most magnet), ``field_angle`` the start's ``phi``
     (default ``target + 90 deg``); ``solve_kw`` go to :meth:`CosseratSolver.solve` (gravity, loads,
-    ...). Each evaluation is warm-started from the previous solution."""
+    ...). Each evaluation is warm-started from the previous solution. ``reached`` says whether the returned field
+    turns the tip to within ``angle_tol`` (rad) of the target: a fit can end elsewhere (a target beyond what the
+    rod's branch from its start reaches) and then says so rather than raise."""
     rod = solver.rod
     if not rod.magnets:
         raise ValueError("fit_uniform_field: the rod has no magnets")
@@ -84,4 +88,5 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
         sol = solver.solve(field=UniformField(B), init=state["init"], **solve_kw)
         th = float(tip_angle(sol))
         loss = ((th - target_angle) / deg) ** 2 + reg * float(u[0]) ** 2
-    return FieldFit(B, th, sol, state["n"] + 1, loss)
+    reached = abs(th - target_angle) <= angle_tol and bool(sol.converged.all())
+    return FieldFit(B, th, sol, state["n"] + 1, loss, reached)

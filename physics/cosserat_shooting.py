@@ -128,18 +128,32 @@ def _vec(name: str, v, dtype, device, trailing: tuple[int, ...]) -> Tensor:
     return v
 
 
-def _needs_grad(*objs) -> bool:
+def _needs_grad(*objs, _depth: int = 0) -> bool:
+    """Whether any tensor in ``objs`` requires a gradient, looked for in tuples, lists, dicts and objects' attributes
+    down to a few levels (a field model's sum keeps its parts' tensors in a list of models)."""
     if not torch.is_grad_enabled():
         return False
     for o in objs:
-        if isinstance(o, Tensor) and o.requires_grad:
-            return True
-        if isinstance(o, tuple) and _needs_grad(*o):
-            return True
-        if o is not None and hasattr(o, "__dict__") and not isinstance(o, Tensor):
-            if any(isinstance(v, Tensor) and v.requires_grad for v in vars(o).values()):
+        if isinstance(o, Tensor):
+            if o.requires_grad:
                 return True
+        elif o is None or isinstance(o, (str, int, float, bool)) or _depth > 6:
+            continue
+        elif isinstance(o, (tuple, list)):
+            if _needs_grad(*o, _depth=_depth + 1):
+                return True
+        elif isinstance(o, dict):
+            if _needs_grad(*o.values(), _depth=_depth + 1):
+                return True
+        elif hasattr(o, "__dict__") and _needs_grad(*vars(o).values(), _depth=_depth + 1):
+            return True
     return False
+
+
+def tensor_versions(*groups) -> tuple:
+    """The in-place version counters of the tensors in ``groups`` (tuples of tensors, e.g. parameters or loads): a
+    cache keyed on those objects also compares these, so that values changed in place are not served stale."""
+    return tuple(t._version for g in groups for t in g if isinstance(t, Tensor))
 
 
 class CosseratSolver:
@@ -184,7 +198,7 @@ class CosseratSolver:
         self.compile = bool(compile)
         if self.compile and jacobian != "forward":
             raise ValueError("compile=True needs jacobian='forward'")
-        self._step_key, self._step_tab = None, None
+        self._step_key, self._step_ver, self._step_tab = None, None, None
         if int(steps_per_call) != steps_per_call or steps_per_call < 1:
             raise ValueError(f"steps_per_call must be an integer >= 1, got {steps_per_call!r}")
         self.steps_per_call = int(steps_per_call)
@@ -279,8 +293,9 @@ class CosseratSolver:
             rt, Jt, Yt = (v.contiguous() for v in evaluate(xt, prm, loads, field, t))
 
     def _table(self, prm):
-        if self._step_key is not prm:  # the parameter table is reused while params are unchanged
-            self._step_key, self._step_tab = prm, step_table(prm, self.rod.grid)
+        ver = tensor_versions(prm)
+        if self._step_key is not prm or self._step_ver != ver:  # reused while the params are unchanged
+            self._step_key, self._step_ver, self._step_tab = prm, ver, step_table(prm, self.rod.grid)
 
     def _chord(self, x, J, prm, loads, field, t, its, live, flat=None, max_steps: int = CHORD_MAX):
         """At most ``max_steps`` chord iterations from ``x`` with the Jacobian ``J`` frozen (see the module
