@@ -15,4 +15,4 @@ __all__ = [
     "StaticSolution", "solve_static", "SolverError", "LGVI", "Boundary", "LGVIState", "Trajectory", "solve_cayley", "Loads", "UniformField",
     "CircularSection", "Magnet", "Material", "Rod", "RodParams", "SquareSection", "StabilityEstimate",
 ]
-__version__ = "0.1.0"
+__version__ = "0.1.1"  # 0.1.1: the LGVI's time is its start plus whole steps (loads at window edges)

@@ -200,9 +200,10 @@ def cached_dataset(task: SurrogateTask | str, n_variants: int, seed: int, data_d
 
 
 def _stale(meta: dict, task: SurrogateTask) -> str:
-    """Why a cached dataset no longer fits its task ('' where it does): another step or node set."""
+    """Why a cached dataset no longer fits its task ('' where it does): another step or node set, or made by another
+    version of the physics."""
     for key, want in (("delta", task.delta), ("tracked", list(task.tracked)),
-                      ("wrench_nodes", list(task.wrench_nodes))):
+                      ("wrench_nodes", list(task.wrench_nodes)), ("physics_version", physics.__version__)):
         if meta.get(key) != want:
             return f"with {key} = {meta.get(key)}, and the task now has {want}"
     return ""
