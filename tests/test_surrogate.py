@@ -89,7 +89,7 @@ def test_training_pulses_trace_as_the_eager_batch(tiny):
     assert not tiny["meta"]["lgvi_compiled"]
 
 
-def test_cached_dataset_is_regenerated_when_its_task_changed_step(tmp_path, capsys):
+def test_cached_dataset_is_regenerated_when_its_task_changed_step(tmp_path, capsys, monkeypatch):
     """A cached file sampled at another surrogate step (or for another node set) is not served to the task."""
     from dataclasses import replace
 
@@ -103,6 +103,13 @@ def test_cached_dataset_is_regenerated_when_its_task_changed_step(tmp_path, caps
     assert "sampled with delta = 0.01" in capsys.readouterr().out
     assert coarse["positions"].shape[1] == 3 and coarse["meta"]["delta"] == 2 * task.delta
     assert torch.equal(coarse["positions"], first["positions"][:, ::2])  # the same LGVI run, every other frame
+    import physics
+    made_by = physics.__version__
+    cached_dataset(task, 2, 0, tmp_path, duration=0.04)  # back at the task's step
+    capsys.readouterr()
+    monkeypatch.setattr(physics, "__version__", "9.9.9")  # data of another physics are made again
+    cached_dataset(task, 2, 0, tmp_path, duration=0.04)
+    assert f"made by physics {made_by}, and this is 9.9.9" in capsys.readouterr().out
 
 
 def test_windows_and_splits(tiny):

@@ -191,7 +191,7 @@ def cached_dataset(task: SurrogateTask | str, n_variants: int, seed: int, data_d
         stale = _stale(data["meta"], task)
         if not stale:
             return data
-        why = f"it was sampled {stale}"
+        why = f"it was {stale}"
     else:
         why = "missing"
     print(f"generating {path} with the LGVI ({n_variants} variants; {why}) ...", flush=True)
@@ -203,9 +203,11 @@ def _stale(meta: dict, task: SurrogateTask) -> str:
     """Why a cached dataset no longer fits its task ('' where it does): another step or node set, or made by another
     version of the physics."""
     for key, want in (("delta", task.delta), ("tracked", list(task.tracked)),
-                      ("wrench_nodes", list(task.wrench_nodes)), ("physics_version", physics.__version__)):
+                      ("wrench_nodes", list(task.wrench_nodes))):
         if meta.get(key) != want:
-            return f"with {key} = {meta.get(key)}, and the task now has {want}"
+            return f"sampled with {key} = {meta.get(key)}, and the task now has {want}"
+    if meta.get("physics_version") != physics.__version__:
+        return f"made by physics {meta.get('physics_version')}, and this is {physics.__version__}"
     return ""
 
 
