@@ -102,3 +102,11 @@ def test_stability_and_parameter_errors():
         ParticleParams(mu_static=0.1, mu_kinetic=0.2)
     with pytest.raises(ValueError, match="viscous"):
         ParticleParams(viscous=-1.0)
+    with pytest.raises(ValueError, match="gravity must be a real number"):
+        ParticleParams(gravity="9.81")
+    # numpy numbers and a list of magnet dimensions are taken (the params key the cached force maps)
+    listed = ParticleParams(magnet_dims=[0.05, 0.025, 0.01], substep=np.float64(0.005))
+    assert listed.magnet_dims == (0.05, 0.025, 0.01) and listed == ParticleParams(substep=0.005)
+    one = direct_force(ParticleParams(), np.array([0.01, 0.0]), dipoles=64)  # a single offset (2,) -> force (3,)
+    assert one.shape == (3,) and np.allclose(one, direct_force(ParticleParams(), np.array([[0.01, 0.0]]),
+                                                               dipoles=64)[0])

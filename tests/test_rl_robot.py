@@ -77,4 +77,5 @@ def test_pybullet_fallback_is_verified(robot):
     T = robot.tool_pose([0.1, 0.45, 0.105])
     q = robot._pybullet_ik(T, robot.ik([0.11, 0.45, 0.105]))
     assert q is not None and np.abs(robot.fk(q)[:3, 3] - [0.1, 0.45, 0.105]).max() < 1e-4
+    assert robot._error(q, T) < robot.tol  # the user's tolerance, not a looser floor
     assert robot._pybullet_ik(robot.tool_pose([0.0, 1.5, 0.105]), np.zeros(6)) is None

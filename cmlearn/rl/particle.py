@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,10 +62,15 @@ class ParticleParams:
         for name in ("magnet_br", "magnet_height", "particle_diameter", "particle_br", "particle_density",
                      "viscous", "gravity", "substep", "map_extent", "map_spacing"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise ValueError(f"{name} must be a real number, got {v!r}")
+            if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+            object.__setattr__(self, name, float(v))  # a numpy number keys the cached maps as its float does
         if len(self.magnet_dims) != 3 or min(self.magnet_dims) <= 0:
             raise ValueError(f"magnet_dims must be 3 positive lengths (m), got {self.magnet_dims!r}")
+        # a tuple of floats whatever sequence came in: the params key the cached force maps (hashable)
+        object.__setattr__(self, "magnet_dims", tuple(float(v) for v in self.magnet_dims))
         if not (0 <= self.mu_kinetic <= self.mu_static):
             raise ValueError(f"need 0 <= mu_kinetic <= mu_static, got {self.mu_kinetic}, {self.mu_static}")
         if self.magnet_height - self.magnet_dims[2] / 2 <= self.particle_diameter:
@@ -94,11 +100,12 @@ def direct_force(params: ParticleParams, offsets: np.ndarray, dipoles: int | Non
     magnet = CuboidMagnet(dimensions=params.magnet_dims, polarization=(0.0, 0.0, -params.magnet_br),
                           position=(0.0, 0.0, params.magnet_height))
     fm = magnet.field_model(int(dipoles or params.magnet_dipoles))
-    off = torch.as_tensor(np.asarray(offsets, dtype=float))
+    offsets = np.asarray(offsets, dtype=float)
+    off = torch.as_tensor(offsets.reshape(-1, 2))
     pts = torch.cat([off, torch.full(off.shape[:-1] + (1,), params.particle_diameter / 2, dtype=off.dtype)], -1)
     B = fm.field(pts)
     m = params.moment * B / B.norm(dim=-1, keepdim=True)
-    return fm.force_torque(pts, m)[0].numpy()
+    return fm.force_torque(pts, m)[0].numpy().reshape(offsets.shape[:-1] + (3,))
 
 
 class ForceMap:

@@ -264,9 +264,9 @@ class UR5:
             q = np.asarray(p.calculateInverseKinematics(
                 body, tool, T_tool[:3, 3].tolist(), quat, maxNumIterations=200, residualThreshold=1e-10,
                 physicsClientId=cid))[:6]
-            if self._error(q, T_tool) < max(self.tol, 1e-6):
+            if self._error(q, T_tool) < self.tol:
                 break
-        if self._error(q, T_tool) >= max(self.tol, 1e-5):
+        if self._error(q, T_tool) >= self.tol:  # verified as the closed form is (pybullet's FK is float32-close)
             return None
         return self._nearest(q, ref)  # None when no 2 pi shift fits the joint limits
 
