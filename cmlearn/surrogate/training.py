@@ -114,8 +114,8 @@ class SurrogateDataModule(SeededDataModule):
             train = self.ranges["train"]
             ds = RolloutWindows(self.positions, self.wrench, [train[0]] * (self.printed_repeat - 1) + train, self.eta,
                                 self.horizon, self.inputs, time_reversal=self.time_reversal)
-        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle,
-                          generator=self.shuffle if shuffle else None, num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, generator=self.shuffle if shuffle else None,
+                          num_workers=self.num_workers, drop_last=shuffle and len(ds) > self.batch_size)
 
     def train_dataloader(self):
         return self._loader("train", True)
