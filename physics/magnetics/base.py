@@ -76,11 +76,14 @@ class Superposition(FieldModel):
 
     def __call__(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
         """Solver hook: the parts' fields at time ``t`` summed (a part that gives ``B`` alone adds no gradient)."""
-        B, dB = 0, 0
+        B, dB = 0, None
         for mdl in self.models:
             out = mdl(t, positions)
-            B, dB = (B + out[0], dB + out[1]) if isinstance(out, tuple) else (B + out, dB)
-        return B, dB + torch.zeros(*B.shape, 3, dtype=B.dtype, device=B.device)
+            if isinstance(out, tuple):
+                B, dB = B + out[0], out[1] if dB is None else dB + out[1]
+            else:
+                B = B + out
+        return B, torch.zeros(*B.shape, 3, dtype=B.dtype, device=B.device) if dB is None else dB
 
     def wrench(self, t, positions: Tensor, moments: Tensor) -> tuple[Tensor, Tensor]:
         """Solver hook: the parts' wrenches at time ``t`` summed."""
