@@ -26,7 +26,7 @@ so that the rod settles within a hold and no fast torsion rings between the 50 H
 
 Currents (chosen; the thesis's experiment moved quasi-statically through 669 samples in 340 s).
 Printed profile (``magnetic_rod``, 24 s): from rest at zero current, minimum-jerk moves of 1.5 s
-with 1 s holds through the currents that give a 5 mT field at the rod's middle (0, 0, -36 mm) along
+with 1 s holds through the currents that give a 5 mT field midway between the magnets (0, 0, -36 mm) along
 +x, +x+y, +y, -x, -x-y, -y, +x-y, +x again and back to zero (each the minimum-norm current vector
 for the field alone, at most 2.7 A); at 5 mT along +x the proximal magnet settles 36 deg and the
 distal 49 deg from the vertical. Held-out (``magnetic_rod_heldout``, 24 s): per coil a sum of three

@@ -139,8 +139,8 @@ def _ellipse_march(n: int, a: float, b: float, l: float) -> np.ndarray:
     return th
 
 
-def ellipse_loop(n_elements: int, width: float, height: float,
-                 element_length: float | None = None) -> tuple[Tensor, Tensor, float]:
+def ellipse_loop(n_elements: int, width: float, height: float, element_length: float | None = None,
+                 min_chord_ratio: float | None = None) -> tuple[Tensor, Tensor, float]:
     """Closed ellipse in the xy-plane, width along x and height along y, with its top vertex at
     the origin, as ``n_elements`` equal elements with zero axial strain.
 
@@ -150,6 +150,11 @@ def ellipse_loop(n_elements: int, width: float, height: float,
     frame (tangent +x). With ``element_length`` given, the ellipse is scaled uniformly (by
     ``element_length / l``) to close with that length instead (to bend one rod into several
     ellipses). Returns ``(p, R, l)``.
+
+    A mesh too coarse for the ellipse's sharpest bends still closes, with elements turning by up to a
+    right angle and more, and past a point on a lopsided loop. With ``min_chord_ratio`` given, such a
+    loop is a ``ValueError`` instead: when its ``n_elements`` chords add up to less than that fraction
+    of the ellipse's perimeter.
     """
     a, b = width / 2, height / 2
     guess = ellipse_perimeter(width, height) / n_elements
@@ -160,6 +165,9 @@ def ellipse_loop(n_elements: int, width: float, height: float,
 
     lo = 0.97 * guess if gap(0.97 * guess) > 0 else 0.8 * guess  # coarse meshes: chords well short of the arcs
     l = scipy.optimize.brentq(gap, lo, 1.001 * guess, xtol=1e-15)
+    if min_chord_ratio is not None and l < min_chord_ratio * guess:
+        raise ValueError(f"ellipse_loop: {n_elements} elements close a {width} x {height} ellipse with chords "
+                         f"{l / guess:.3f} of its perimeter, below min_chord_ratio={min_chord_ratio}")
     theta = np.append(_ellipse_march(n_elements - 1, a, b, l), 2 * math.pi)
     scale = 1.0 if element_length is None else element_length / l
     x, y, tx, ty = _ellipse_points(theta, a, b)

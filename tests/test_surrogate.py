@@ -189,15 +189,23 @@ def test_the_printed_scene_can_keep_its_share_of_the_training(tiny):
 
 def test_ellipse_training_loops_leave_out_the_printed_and_held_out_shapes():
     task = get_task("ellipse")
-    var = task.variants(task.base_scene(), 40, 0)
+    var = task.variants(task.base_scene(), 64, 0)
     aspects = torch.tensor(var["info"]["aspect_h_over_w"], dtype=torch.float64)
-    assert float(aspects[0]) == pytest.approx(3.0) and var["p"].shape == (40, 59, 3)  # variant 0: the printed 0.2 m x 0.6 m loop
+    assert float(aspects[0]) == pytest.approx(3.0) and var["p"].shape == (64, 59, 3)  # variant 0: the printed 0.2 m x 0.6 m loop
     log_a = aspects[1:].log()
     assert float((log_a - math.log(3.0)).abs().min()) > math.log(1.1)  # no replay of the printed loop
     assert float((log_a - math.log(1 / 3)).abs().min()) > math.log(1.25)  # the held-out loop stays unseen
     assert math.log(1.25) <= float(log_a.abs().min()) and float(log_a.abs().max()) <= math.log(5.0)
     assert bool((log_a > 0).any()) and bool((log_a < 0).any())  # tall and wide loops
     assert float(var["p"][:, [0, -1]].abs().max()) == 0  # every loop closes at the clamped origin
+    # loops too sharp for 58 elements (chords short of 97 % of the perimeter: 1:4.83 was drawn) are redrawn
+    assert 1 / 4.58 < float(aspects.min()) and float(aspects.max()) < 4.86
+    from physics.shapes import ellipse_loop
+    l = float(task.base_scene().rod.lengths[0])
+    for aspect in (5.0, 0.2):
+        ellipse_loop(58, 1.0, aspect, element_length=l)  # closes, with elements turning by over 110 deg
+        with pytest.raises(ValueError, match="min_chord_ratio=0.97"):
+            ellipse_loop(58, 1.0, aspect, element_length=l, min_chord_ratio=0.97)
 
 
 def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
