@@ -192,7 +192,15 @@ def _ellipse_scene(name: str, title: str, width: float, height: float, descripti
 
     mesh = _mesh(n_elements, _ELLIPSE_N, even=True)
     rod = _ELLIPSE_ROD if not mesh else Rod(_ELLIPSE_ROD.length, _SECTION, _VERY_SOFT, n_elements=n_elements)
-    scale = float(rod.lengths[0]) / ellipse_loop(n_elements, width, height)[2]
+    try:
+        p0, _, l0 = ellipse_loop(n_elements, width, height)
+    except ValueError as e:  # the closure's bracket fails on a mesh far too coarse for the ellipse
+        raise ValueError(f"n_elements={n_elements} is too coarse for the {width} m x {height} m ellipse ({e})") from e
+    lopsided = float((p0[:, 0] + p0.flip(0)[:, 0]).abs().max())
+    if lopsided > 1e-9 * width:  # the march closed on a loop that is no mirror image of itself
+        raise ValueError(f"n_elements={n_elements} is too coarse for the {width} m x {height} m ellipse: its loop "
+                         f"closes {lopsided * 1e3:.1f} mm off its mirror symmetry")
+    scale = float(rod.lengths[0]) / l0
     mid = n_elements // 2
     return Scene(
         name=name, title=title, description=description, rod=rod, bc="clamped-clamped", dt=_ELLIPSE_DT,

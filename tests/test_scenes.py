@@ -446,6 +446,9 @@ def test_paper2_scenes_on_another_mesh():
         # the same rod on longer chords closes a slightly larger ellipse
         assert -float(p[15, 1]) == pytest.approx(height * sc.chosen["ellipse_scale"], rel=1e-6)
         assert 1.0 < sc.chosen["ellipse_scale"] < 1.05
+    for n, why in ((20, "ellipse \\(f\\(a\\)"), (24, "ellipse: its loop closes 13.6 mm off its mirror symmetry")):
+        with pytest.raises(ValueError, match=f"n_elements={n} is too coarse for the 0.2 m x 0.6 m {why}"):
+            ellipse(n)  # the bracket fails, or the loop closes lopsided, its node 13 off the vertex
     sc = semicircle_heldout(50)
     assert sc.nodes_of_interest == (25, 7) and sc.loads.force.node == 25 and sc.loads.force.n_nodes == 51
     integ = sc.make_integrator(stability="off")
