@@ -13,8 +13,13 @@ normal of the plane of the curve, and the printed orientations are reconciled as
   ellipse_loop`) gives -/+19.0 deg. For the horizontal ellipse the chords make 0.7 deg, i.e. the
   printed "identity".
 * Semicircle (Simulation III): the relative rotation between the two clamped end frames is
-  ``R_z(180 deg)``, the printed ``R_z(181.81 deg)`` up to 1.81 deg (one element's turning angle is
-  1.8 deg, so the printed value is most likely the last node's frame counted one element on).
+  ``R_z(180 deg)``, the printed ``R_z(181.81 deg)`` up to 1.81 deg. One element turns by 1.8 deg, so
+  the printed value is most likely the last node's frame counted one element on along an arc turning
+  counter-clockwise (from tangent +x, the literal "identity"). Ours is that arc's mirror image, chosen
+  and kept: it starts with tangent +y and turns clockwise, so that it stands on its chord along x with
+  its apex up and the printed -y force on the middle node pushes the apex towards the chord (on the
+  literal arc, chord along y, that force would act along the apex's tangent); counted one element on,
+  ours would read ``R_z(-181.8 deg)``.
 
 No gravity: the thesis lists none, and a 55 cm rod of E = 10 MPa and radius 1 cm would sag by
 about 45 cm under its own weight. No damping (none is given).
