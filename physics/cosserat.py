@@ -39,18 +39,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .rod import CircularSection, Material, SquareSection
+from .rod import CircularSection, Material, SquareSection, finite_vector
 
 __all__ = ["Segment", "MagnetDipole", "CosseratRod", "CosseratParams", "CosseratGrid", "StaticLoads", "broadcast_shape"]
 
 _MERGE = 1e-9  # relative distance under which two breakpoints are the same node
-
-
-def _check_vec(name: str, v, n: int = 3) -> tuple[float, ...]:
-    t = tuple(float(x) for x in v)
-    if len(t) != n or not all(math.isfinite(x) for x in t):
-        raise ValueError(f"{name} must be {n} finite numbers, got {v!r}")
-    return t
 
 
 @dataclass(frozen=True)
@@ -72,9 +65,9 @@ class Segment:
             raise TypeError(f"Segment.section must be CircularSection or SquareSection, got {type(self.section)}")
         if not isinstance(self.material, Material):
             raise TypeError(f"Segment.material must be a Material, got {type(self.material)}")
-        object.__setattr__(self, "intrinsic_curvature", _check_vec("Segment.intrinsic_curvature",
+        object.__setattr__(self, "intrinsic_curvature", finite_vector("Segment.intrinsic_curvature",
                                                                    self.intrinsic_curvature))
-        object.__setattr__(self, "intrinsic_strain", _check_vec("Segment.intrinsic_strain", self.intrinsic_strain))
+        object.__setattr__(self, "intrinsic_strain", finite_vector("Segment.intrinsic_strain", self.intrinsic_strain))
 
     def stiffness(self, shear_coefficient: float = 1.0) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """``(K_s, K_b)`` diagonals: (k G A, k G A, E A) and (E I1, E I2, G J)."""
@@ -96,7 +89,7 @@ class MagnetDipole:
     name: str = ""
 
     def __post_init__(self):
-        object.__setattr__(self, "moment", _check_vec("MagnetDipole.moment", self.moment))
+        object.__setattr__(self, "moment", finite_vector("MagnetDipole.moment", self.moment))
         if not (math.isfinite(float(self.mass)) and self.mass >= 0):
             raise ValueError(f"MagnetDipole.mass (kg) must be finite and >= 0, got {self.mass!r}")
 

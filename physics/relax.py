@@ -35,7 +35,8 @@ def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=
 
     ``fixed`` node indices keep their pose; ``gravity`` (3,) m/s^2; ``field`` a uniform field (3,)
     in tesla acting on the rod's magnets. ``tol`` bounds the residual node forces and torques,
-    relative to ``E I / L^2`` and ``E I / L``. Raises :class:`~physics.errors.SolverError` if it
+    relative to ``E I / (L l_min)`` and ``E I / L`` (``l_min`` the shortest element: a node's force
+    grows with its elements' length). Raises :class:`~physics.errors.SolverError` if it
     does not converge.
     """
     prm = rod.params(torch.float64)
@@ -111,4 +112,4 @@ def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=
                 break
             recentre(step)
     raise SolverError(f"static_equilibrium did not converge (max residual {rnorm:.2e} > {tol:.1e} in units "
-                      f"of E I / L^2 and E I / L)")
+                      f"of E I / (L l_min) and E I / L)")

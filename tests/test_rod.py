@@ -45,6 +45,11 @@ def test_rod_validation():
         Magnet(s=0.1, mass=1.0, moment=(0.0, float("inf"), 0.0))
     with pytest.raises(TypeError, match="section"):
         Rod(length=1.0, section=1e-3, material=mat, n_elements=4)
+    for bad in ((float("nan"), 0.0, 0.0), (1.0, 2.0)):  # was a NaN energy, or a shape error deep in params()
+        with pytest.raises(ValueError, match="Rod.intrinsic_curvature"):
+            Rod(length=1.0, section=CircularSection(1e-3), material=mat, n_elements=4, intrinsic_curvature=bad)
+    with pytest.raises(TypeError, match="Rod.magnets must be Magnet"):
+        Rod(length=1.0, section=CircularSection(1e-3), material=mat, n_elements=4, magnets=("tip",))
 
 
 def test_derived_parameters_circular():
