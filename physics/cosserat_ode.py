@@ -204,8 +204,12 @@ def shoot(x: Tensor, prm: CosseratParams, grid: CosseratGrid, loads: StaticLoads
                 dpos = T[..., 0:3]
                 dmu = mv3(2.0 * _rbil(y[..., None, 3:7], T[..., 3:7]), mu_b.unsqueeze(-2))
             if field is not None:
-                F, M, dF, dM = _field_wrench(field, t, y[..., 0:3], mu, dpos, dmu, fd_step)
-                sc = loads.field_scale.unsqueeze(-1)
+                # a shot that ran off to infinity (a trial step far too long) is no point to ask the field
+                # about: the field sees the base there and the wrench is NaN, a trial the solver rejects
+                fin = torch.isfinite(y[..., 0:3]).all(-1, keepdim=True)
+                pos = torch.where(fin, y[..., 0:3], p0)
+                F, M, dF, dM = _field_wrench(field, t, pos, mu, dpos, dmu, fd_step)
+                sc = torch.where(fin, loads.field_scale.unsqueeze(-1), torch.nan)
                 F, M = F * sc, M * sc
                 if T is not None:
                     dF, dM = dF * sc.unsqueeze(-1), dM * sc.unsqueeze(-1)

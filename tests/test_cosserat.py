@@ -439,3 +439,22 @@ def test_bad_input_raises_clear_errors():
         CosseratSolver(rod, tol=0.0)
     with pytest.raises(ValueError, match="load_steps"):
         solver.solve(load_steps=0)
+
+
+def test_a_shot_that_runs_off_gives_a_nan_residual_not_a_field_error():
+    """A trial base wrench far too large sends the RK4 shot to infinity: the field is not asked about the
+    non-finite magnet position (a point dipole raised "field point at distance nan"), the residual is NaN,
+    which the Levenberg-Marquardt step rejects."""
+    from physics.magnetics.dipole import dipole_field, dipole_field_gradient
+    L = 0.05
+    rod = CosseratRod.uniform(L, CircularSection(1e-3), Material(E=1e6, density=1000.0, nu=0.5), n_nodes=21,
+                              magnets=(MagnetDipole(0.03, (1e-3, 0.0, 2e-3), 1e-5),))
+    solver = CosseratSolver(rod)
+    src, m = torch.tensor([0.03, 0.02, 0.06], dtype=torch.float64), torch.tensor([0.0, 0.3, 0.5], dtype=torch.float64)
+
+    def field(t, pos):
+        return dipole_field(pos - src, m), dipole_field_gradient(pos - src, m)
+    x = torch.tensor([[0.1] * 6, [1000.0] * 6], dtype=torch.float64)
+    for tangent in (False, True):
+        r = shoot(x, solver.params, rod.grid, solver.make_loads(), solver.scales, field, tangent=tangent).r
+        assert bool(torch.isfinite(r[0]).all()) and not bool(torch.isfinite(r[1]).any())
