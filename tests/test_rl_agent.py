@@ -462,3 +462,23 @@ def test_acting_guard_predicts_the_obstacle_rule_and_breaks_cycles():
     assert agent.act(obs) == order[0]
     with pytest.raises(ValueError, match="revisit_penalty"):
         ActingGuard(revisit_penalty=-1.0)
+
+
+def test_target_network_is_copied_after_every_target_update_th_update():
+    """``target_update`` updates between copies (torchrl's HardUpdate copies every interval + 1 steps), and the
+    target's weights stay plain tensors after a forward pass, so an updater can still be built then."""
+    from cmlearn.rl.training import target_updater
+    loss = IQNLoss(make_iqn_actor(IQNConfig(**SMALL)), num_quantiles=8, num_target_quantiles=8)
+    loss(batch())  # a forward pass (the target quantiles) before the updater is built, as on a resume
+    online, target = loss.value_network_params, loss.target_value_network_params
+    assert not any(p.requires_grad for p in target.values(True, True))
+    weights = [k for k, p in online.items(True, True) if p.requires_grad]  # the buffers (noise) are the nets' own
+    assert len(weights) > 10
+    updater = target_updater(loss, 3)
+    synced = []
+    for _ in range(9):
+        for k in weights:
+            online[k].data.add_(1.0)  # an optimiser step
+        updater.step()
+        synced.append(all(torch.equal(online[k], target[k]) for k in weights))
+    assert synced == [False, False, True] * 3

@@ -170,7 +170,7 @@ class IQNLoss(LossModule):
             with self.value_network_params.data.to_module(self.value_network):
                 q_next = net.quantiles(obs_next, torch.rand(B, k, device=obs_next.device)).mean(-2)
             a_star = q_next.argmax(-1)
-            with self.target_value_network_params.to_module(self.value_network):
+            with self.target_value_network_params.data.to_module(self.value_network):
                 z = net.quantiles(obs_next, torch.rand(B, self.num_target_quantiles, device=obs_next.device))
         z = z.gather(-1, a_star.view(B, 1, 1).expand(B, z.shape[1], 1)).squeeze(-1)
         r = td.get(("next", self.keys.reward)).reshape(B).to(z.dtype)

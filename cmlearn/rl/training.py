@@ -42,7 +42,7 @@ from cmlearn.models.iqn import IQNConfig, find_iqn_network, make_iqn_actor
 from .agent import IQNAgent, save_agent
 from .iqn_loss import IQNLoss
 
-__all__ = ["AgentTrainConfig", "TrainResult", "train_agent", "evaluate_agent", "make_replay_buffer",
+__all__ = ["AgentTrainConfig", "TrainResult", "train_agent", "evaluate_agent", "make_replay_buffer", "target_updater",
            "TRAIN_CHECKPOINT_FORMAT"]
 
 TRAIN_CHECKPOINT_FORMAT = "cmlearn-iqn-train/1"
@@ -217,6 +217,14 @@ def make_replay_buffer(cfg: AgentTrainConfig):
         transform=MultiStepTransform(cfg.n_steps, cfg.gamma, done_keys=["done", "truncated"]))
 
 
+def target_updater(loss: IQNLoss, every: int):
+    """torchrl's ``HardUpdate`` that copies the online weights into the target network after every ``every``-th
+    update (its ``counter`` is the number of updates done modulo ``every``). ``HardUpdate`` copies when its counter,
+    stepped from 0, equals its interval, i.e. every interval + 1 steps: the interval is ``every - 1``."""
+    from torchrl.objectives import HardUpdate
+    return HardUpdate(loss, value_network_update_interval=every - 1)
+
+
 def _save_train_state(path: Path, state: dict) -> None:
     save_torch_atomic(path, state)
 
@@ -228,7 +236,6 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
 
     ``maps`` (a list of :class:`~cmlearn.rl.maps.Map`) replaces the procedural training maps.
     ``stop_after_frames`` ends the run early (as an interruption would) after writing a checkpoint."""
-    from torchrl.objectives import HardUpdate
     from torchrl.record.loggers.csv import CSVLogger
 
     torch.set_num_threads(cfg.threads)
@@ -244,7 +251,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
     loss = IQNLoss(actor, gamma=cfg.gamma, num_quantiles=cfg.num_quantiles,
                    num_target_quantiles=cfg.num_target_quantiles, kappa=cfg.kappa, margin=cfg.margin,
                    margin_weight=cfg.margin_weight)
-    updater = HardUpdate(loss, value_network_update_interval=cfg.target_update)
+    updater = target_updater(loss, cfg.target_update)
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
     rb = make_replay_buffer(cfg)
     demo_rb = None
@@ -283,7 +290,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
             result.buffer_restored = False
             log(f"resumed from frame {frames} (update {updates}); replay buffer NOT restored (it was not saved): "
                 f"refilling {cfg.init_random_frames} frames with the current policy before updates resume")
-    updater.counter = updates % (cfg.target_update + 1)  # keep the target-update phase across a resume
+    updater.counter = updates % cfg.target_update  # keep the target-update phase across a resume
 
     csv = CSVLogger(exp_name="log", log_dir=str(out))
     tb = None
