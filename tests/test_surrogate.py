@@ -788,6 +788,23 @@ def mixing_model(task, **cfg):
     return model, hist, wrench, ref
 
 
+def test_the_magnetic_rods_tip_is_a_free_end_and_its_markers_hang_off_the_rod():
+    """The magnet markers (tracked ids 11-14) follow the rod's last node (10) in the tracked list, yet no rod node
+    sees one: the tip is a free end (no right neighbour, none in its mixing rings), and a wider stencil stops at
+    it (the chain had made marker 11, on the other magnet, the tip's right neighbour)."""
+    task = get_task("magnetic_rod")
+    pos = {n: i for i, n in enumerate(task.tracked)}
+    cfg = task.model_config(stencil=2, mix=2)
+    slot = {m: j for j, m in enumerate(cfg.modeled)}
+    tip, nine = slot[pos[10]], slot[pos[9]]
+    assert cfg.right[tip] == pos[10] and cfg.right2[tip] == pos[10] and cfg.right2[nine] == pos[10]
+    markers = {slot[pos[m]] for m in (11, 12, 13, 14)}
+    rod = [j for j, m in enumerate(task.modeled) if m <= 10]
+    for ring in cfg.mix_neighbours():
+        assert not any(ring[j] in markers for j in rod)
+    assert {cfg.left[slot[pos[m]]] for m in (11, 12)} == {pos[4]} and cfg.right[slot[pos[13]]] == pos[10]
+
+
 @pytest.mark.parametrize("mix", [1, 2])
 def test_a_mixing_head_sees_its_neighbours_lstm_outputs_and_widens_and_freezes_as_it_runs(mix):
     """``mix=1`` and ``2``: the head also sees the LSTM outputs of the modelled neighbours one (and two) nodes away,

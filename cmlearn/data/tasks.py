@@ -390,7 +390,8 @@ def _planar_magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
 
 
 _MAGNET_NODES = dict(modeled=(2, 4, 5, 7, 9, 10, 11, 12, 13, 14), anchors=(0,), wrench_nodes=(4, 5, 9, 10),
-                     links={11: (4, 5), 12: (4, 5), 13: (9, 10), 14: (9, 10)}, custom="cmlearn.surrogate.magnetic")
+                     links={10: (9, 10), 11: (4, 5), 12: (4, 5), 13: (9, 10), 14: (9, 10)},  # 10: the free tip
+                     custom="cmlearn.surrogate.magnetic")
 
 TASKS = {
     "ellipse": SurrogateTask(

@@ -176,9 +176,10 @@ class NodeLSTMConfig:
         if stencil not in (1, 2, 3):
             raise ValueError(f"stencil must be 1, 2 or 3, got {stencil!r}")
         last, rings, left, right = self.n_tracked - 1, {}, self.left, self.right
+        free = {m for m, r in zip(self.modeled, self.right) if r == m}  # free ends: nothing lies beyond them
         for r in (2, 3):
             left = tuple(max(i - 1, 0) for i in left)
-            right = tuple(m if i == m else min(i + 1, last) for i, m in zip(right, self.modeled))
+            right = tuple(i if i in free else min(i + 1, last) for i in right)
             rings[f"left{r}"], rings[f"right{r}"] = (left, right) if r <= stencil else ((), ())
         return replace(self, **rings)
 
