@@ -231,7 +231,8 @@ def start_from(model: NodeLSTMSurrogate, init: NodeLSTMSurrogate, meta: dict, da
     run = meta.get("args", {})
     trained = dm.train_positions(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
     fresh = NodeLSTMSurrogate(model.config)  # the scales this run's data gives
-    fresh.set_scales(trained, dm.wrench, float(init.length_scale))
+    forces = dm.train_wrench(fresh_validation=bool(run.get("val_fresh")), val_tail=run.get("val_tail", 0.0))
+    fresh.set_scales(trained, forces, float(init.length_scale))
     ring = 6 * init.config.stencil  # the offset scales the checkpoint holds; those of a ring it adds are new
     off = 0.0
     if meta.get("data_hash") != data["meta"]["data_hash"]:
@@ -294,7 +295,7 @@ def main(argv=None):
     model = build_model(task, a)
     init_from = None
     if init is None:
-        model.set_scales(dm.train_positions(), dm.wrench, task.base_scene().rod.length)
+        model.set_scales(dm.train_positions(), dm.train_wrench(), task.base_scene().rod.length)
     else:  # the starting checkpoint's weights and scales
         init_from = start_from(model, *init, data, dm, a.init_from, a.keep_scales)
     module = SurrogateModule(model, horizon=a.horizon, warmup_epochs=a.warmup_epochs, lr=a.lr,

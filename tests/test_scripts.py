@@ -484,7 +484,8 @@ def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
     (tmp_path / "ck.pt").write_bytes(b"weights")
     meta, data = {"data_hash": "a" * 16, "command": "train"}, {"meta": {"data_hash": "b" * 16}}
     for factor, fits in ((1 + 1e-12, True), (1.001, False)):
-        dm = SimpleNamespace(train_positions=lambda fresh_validation, val_tail: [p * factor for p in trajs], wrench=wrench)
+        dm = SimpleNamespace(train_positions=lambda fresh_validation, val_tail: [p * factor for p in trajs],
+                             train_wrench=lambda fresh_validation, val_tail: wrench)
         model = ts.build_model(task, a)
         if fits:
             prov = ts.start_from(model, init, meta, data, dm, str(tmp_path / "ck.pt"))
@@ -502,14 +503,16 @@ def test_init_from_accepts_regenerated_data_only_when_its_scales_fit(tmp_path):
             "meta": {"n_variants": 3, "wrench_nodes": list(task.wrench_nodes), "modeled": list(task.modeled),
                      "data_hash": "b" * 16}}
     dm_fresh = SurrogateDataModule(dset, eta=2, horizon=4, val_dataset=dset)
-    init.set_scales(SurrogateDataModule(dset, eta=2, horizon=4).train_positions(), dm_fresh.wrench, 0.6)
+    plain = SurrogateDataModule(dset, eta=2, horizon=4)
+    init.set_scales(plain.train_positions(), plain.train_wrench(), 0.6)
     prov = ts.start_from(ts.build_model(task, a), init, meta, data, dm_fresh, str(tmp_path / "ck.pt"))
     assert prov["data_hash"] == "a" * 16
     with pytest.raises(SystemExit, match="its scales differ"):  # as if that run had trained on every variant
         ts.start_from(ts.build_model(task, a), init, {**meta, "args": {"val_fresh": 4}}, data, dm_fresh,
                       str(tmp_path / "ck.pt"))
     # a --val-tail run trained on less of the printed scene: its scales are compared over that part
-    init.set_scales(SurrogateDataModule(dset, eta=2, horizon=4, val_tail=0.3).train_positions(), dm_fresh.wrench, 0.6)
+    tail = SurrogateDataModule(dset, eta=2, horizon=4, val_tail=0.3)
+    init.set_scales(tail.train_positions(), tail.train_wrench(), 0.6)
     ts.start_from(ts.build_model(task, a), init, {**meta, "args": {"val_tail": 0.3}}, data, dm_fresh,
                   str(tmp_path / "ck.pt"))
     with pytest.raises(SystemExit, match="its scales differ"):

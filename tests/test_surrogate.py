@@ -167,6 +167,11 @@ def test_validation_tail_of_the_printed_scene(tiny):
     assert torch.equal(hist[0], tiny["positions"][0, tail:tail + 3])  # the first window: the printed tail's start
     assert all(b - a + 1 >= 3 for _, a, b in dm.ranges["val"]) and dm.ranges["test"] == [(0, cut, T - 1)]
     assert len(dm.train_positions(fresh_validation=False, val_tail=0.2)[0]) == tail + 1
+    # the force scale's forces: those of the training transitions only, none of the validation or test ranges
+    w = dm.train_wrench()
+    assert w.shape[0] == sum(b - a for _, a, b in dm.ranges["train"])
+    assert torch.equal(w, torch.cat([dm.wrench[v, a:b] for v, a, b in dm.ranges["train"]]))
+    assert w.shape[0] < dm.wrench.shape[0] * dm.wrench.shape[1]
     with pytest.raises(ValueError, match="val_tail and val_dataset"):
         SurrogateDataModule(tiny, eta=2, horizon=2, val_dataset=tiny, val_tail=0.2)
 

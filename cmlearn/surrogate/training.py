@@ -92,11 +92,19 @@ class SurrogateDataModule(SeededDataModule):
         """Trajectories the scales may be computed from (training ranges only): this module's, or those of
         a run with (``fresh_validation=True``: every variant trains) or without fresh validation variants
         and with the given ``val_tail``."""
-        ranges = self.ranges["train"]
-        if fresh_validation is not None:
-            ranges = split_ranges(len(self.positions), self.positions.shape[1],
-                                  val_variants=0 if fresh_validation else 1, val_tail=val_tail)["train"]
-        return [self.positions[v, a:b + 1] for v, a, b in ranges]
+        return [self.positions[v, a:b + 1] for v, a, b in self._train_ranges(fresh_validation, val_tail)]
+
+    def train_wrench(self, fresh_validation: bool | None = None, val_tail: float = 0.0) -> torch.Tensor:
+        """The node forces (N, K, 3) of the transitions in :meth:`train_positions`' trajectories (their force
+        scale: none from the validation or test ranges)."""
+        ranges = self._train_ranges(fresh_validation, val_tail)
+        return torch.cat([self.wrench[v, a:b] for v, a, b in ranges]) if self.wrench.numel() else self.wrench
+
+    def _train_ranges(self, fresh_validation: bool | None, val_tail: float) -> list:
+        if fresh_validation is None:
+            return self.ranges["train"]
+        return split_ranges(len(self.positions), self.positions.shape[1],
+                            val_variants=0 if fresh_validation else 1, val_tail=val_tail)["train"]
 
     def _val_ranges(self):
         """The validation ranges; an error where there are none of their own (:func:`split_ranges` then gives the
