@@ -359,3 +359,26 @@ def test_the_staged_solve_crosses_a_snap_through_onto_the_branch_the_escalation_
     assert bool(staged.converged) and (staged.p - escalated.p).abs().max() < 1e-9
     turned = (staged.R[st.nodes] - before[0].R[st.nodes]).abs().max()
     assert turned > 0.1 and (escalated.R - staged.R).abs().max() < 1e-9
+
+
+def test_a_cached_static_track_is_served_only_for_the_same_times_clamp_truncation_and_physics(tmp_path, monkeypatch):
+    """The cache of static solves is keyed on what changes them: a track cut short by ``truncate`` (NaN frames) is not
+    served to a caller that wants a SolverError, nor one of another clamp or physics version."""
+    import physics
+    from cmlearn.data import quasistatic as qs
+    calls = []
+
+    def fake(currents, emns, times, **kw):
+        calls.append(kw)
+        n = len(times)
+        return qs.StaticTrack(torch.zeros(n, 2, 3), torch.eye(3).expand(n, 2, 3, 3), torch.ones(n), 0.5)
+    monkeypatch.setattr(qs, "static_track", fake)
+    path, pose = tmp_path / "track.pt", {"base_quaternion": torch.tensor([0.0, 1.0, 0.0, 0.0])}
+    track = qs.cached_static_track(path, None, None, [0.0, 0.02], **pose)
+    assert qs.cached_static_track(path, None, None, [0.0, 0.02], **pose).wall_s == track.wall_s and len(calls) == 1
+    for kw in ({**pose, "truncate": True}, {}, {"base_quaternion": torch.tensor([1.0, 0.0, 0.0, 0.0])}):
+        qs.cached_static_track(path, None, None, [0.0, 0.02], **kw)
+    qs.cached_static_track(path, None, None, [0.0, 0.04])
+    monkeypatch.setattr(physics, "__version__", "9.9.9")
+    qs.cached_static_track(path, None, None, [0.0, 0.04])
+    assert len(calls) == 6

@@ -110,6 +110,12 @@ def test_cached_dataset_is_regenerated_when_its_task_changed_step(tmp_path, caps
     monkeypatch.setattr(physics, "__version__", "9.9.9")  # data of another physics are made again
     cached_dataset(task, 2, 0, tmp_path, duration=0.04)
     assert f"made by physics {made_by}, and this is 9.9.9" in capsys.readouterr().out
+    from cmlearn.data.generate import _stale  # another LGVI step, duration or scene: made again too
+    meta = {**first["meta"], "physics_version": "9.9.9"}
+    assert _stale(meta, task, 0.04) == ""
+    for key, value in (("dt", 2e-4), ("duration", 0.02), ("scene", "semicircle_heldout"), ("rod_length", 0.3)):
+        assert _stale({**meta, key: value}, task, 0.04).startswith(f"sampled with {key} = {value}")
+    assert _stale(meta, task).startswith("sampled with duration = 0.04")  # the scene's own 2 s asked for
 
 
 def test_windows_and_splits(tiny):

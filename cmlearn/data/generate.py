@@ -188,7 +188,7 @@ def cached_dataset(task: SurrogateTask | str, n_variants: int, seed: int, data_d
     path = dataset_path(data_dir, task.name, n_variants, seed, duration)
     if path.exists():
         data = load_dataset(path, task=task.name)
-        stale = _stale(data["meta"], task)
+        stale = _stale(data["meta"], task, duration)
         if not stale:
             return data
         why = f"it was {stale}"
@@ -199,10 +199,13 @@ def cached_dataset(task: SurrogateTask | str, n_variants: int, seed: int, data_d
     return load_dataset(path, task=task.name)
 
 
-def _stale(meta: dict, task: SurrogateTask) -> str:
-    """Why a cached dataset no longer fits its task ('' where it does): another step or node set, or made by another
-    version of the physics."""
-    for key, want in (("delta", task.delta), ("tracked", list(task.tracked)),
+def _stale(meta: dict, task: SurrogateTask, duration: float | None = None) -> str:
+    """Why a cached dataset no longer fits its task ('' where it does): another scene, LGVI step, duration, rod length,
+    surrogate step or node set, or made by another version of the physics (a change within a scene's or the variant
+    generator's definition that keeps all of these is not seen: bump ``physics.__version__`` with it)."""
+    scene = task.base_scene()
+    for key, want in (("scene", task.scene), ("dt", scene.dt), ("duration", duration or scene.duration),
+                      ("rod_length", scene.rod.length), ("delta", task.delta), ("tracked", list(task.tracked)),
                       ("wrench_nodes", list(task.wrench_nodes))):
         if meta.get(key) != want:
             return f"sampled with {key} = {meta.get(key)}, and the task now has {want}"

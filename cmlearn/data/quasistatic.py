@@ -181,15 +181,19 @@ def compose(d: Tensor, P: Tensor, Rs: Tensor) -> tuple[Tensor, Tensor]:
     return P + dc, so3_exp(dth) @ Rs
 
 
-def cached_static_track(path: str | Path | None, currents, emns, times, **pose) -> StaticTrack:
-    """:func:`static_track`, read from ``path`` where it holds the same ``times`` (and written there, atomically,
-    where it does not); ``None``: no cache. The file does not know the currents: name it after them."""
+def cached_static_track(path: str | Path | None, currents, emns, times, **kw) -> StaticTrack:
+    """:func:`static_track`, read from ``path`` where it holds the same ``times``, keywords ``kw`` (clamp, nodes,
+    ``truncate``) and physics version (and written there, atomically, where it does not); ``None``: no cache. The
+    file does not know the currents: name it after them."""
+    import physics
     times = [float(t) for t in times]
+    key = {"times": times, "physics_version": physics.__version__,
+           "kw": {k: v.tolist() if isinstance(v, Tensor) else v for k, v in sorted(kw.items())}}
     if path is not None and Path(path).exists():
         blob = torch.load(path, weights_only=True)
-        if blob.get("times") == times and "margin" in blob:
+        if blob.get("key") == key and "margin" in blob:
             return StaticTrack(blob["P"], blob["R"], blob["margin"], float(blob["wall_s"]))
-    track = static_track(currents, emns, times, **pose)
+    track = static_track(currents, emns, times, **kw)
     if path is not None:
-        save_torch_atomic(path, {**track._asdict(), "times": times})
+        save_torch_atomic(path, {**track._asdict(), "key": key})
     return track
