@@ -382,3 +382,29 @@ def test_a_cached_static_track_is_served_only_for_the_same_times_clamp_truncatio
     monkeypatch.setattr(physics, "__version__", "9.9.9")
     qs.cached_static_track(path, None, None, [0.0, 0.04])
     assert len(calls) == 6
+
+
+def test_a_batch_mates_failed_warm_step_leaves_the_converged_problems_solution_alone():
+    """Where one problem of a batch needs its step split in halves, the others keep the solution their one warm
+    step gave (the static track of a profile is the same in any batch), and the split one reaches the time."""
+    from cmlearn.data import quasistatic as qs
+    from physics.cosserat_shooting import StaticSolution
+    asked = []
+
+    def solution(y, ok):
+        return StaticSolution(torch.zeros(1), y, torch.zeros(2, 6), ok, torch.zeros(2), (~ok).double(),
+                              torch.zeros(2, 6, 6))
+
+    class Solver:  # y[..., 0]: the time reached; y[..., 1]: the warm solves along the path to it
+        def solve(self, solver, field, init=None, **kw):
+            t, t0 = asked[-1], init.y[:, 0, 0]
+            ok = torch.stack([torch.tensor(True), t - t0[1] <= 0.25])  # problem 1 moves a quarter at most
+            return solution(torch.stack([torch.full((2,), t), init.y[:, 0, 1] + 1], -1)[:, None, :], ok)
+
+    def currents(t):
+        asked.append(float(t))
+        return torch.zeros(2, 6, dtype=torch.float64)
+    start = solution(torch.zeros(2, 1, 2, dtype=torch.float64), torch.ones(2, dtype=torch.bool))
+    out = qs._warm_step(Solver(), None, lambda current: None, currents, {}, start, 0.0, 1.0, 4)
+    assert out.y[:, 0, 0].tolist() == [1.0, 1.0] and bool(out.converged.all())
+    assert out.y[:, 0, 1].tolist() == [1.0, 4.0]  # one warm solve for problem 0; four quarter steps for problem 1

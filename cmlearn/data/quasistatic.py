@@ -142,7 +142,8 @@ def _warm_step(sc, solver, field_of, currents, pose, sol, t_prev: float, t: floa
     if halvings > 0:
         mid = 0.5 * (t_prev + t)
         half = _warm_step(sc, solver, field_of, currents, pose, sol, t_prev, mid, halvings - 1)
-        return _warm_step(sc, solver, field_of, currents, pose, half, mid, t, halvings - 1)
+        # the problems that converged in one step keep that solution: each problem of a batch is solved as alone
+        return _where(out.converged, out, _warm_step(sc, solver, field_of, currents, pose, half, mid, t, halvings - 1))
     out = _where(out.converged, out, sc.solve(solver, field=field, load_steps=4, raise_on_failure=False, **pose))
     if not bool(out.converged.all()):
         bad = int((~out.converged).flatten().nonzero()[0])
