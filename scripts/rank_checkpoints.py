@@ -5,9 +5,10 @@
 
 A run's own validation (``val_loss``, ``val_rollout_mm``) scores one trajectory of its data; the
 held-out scenes are the test and must not pick a model. This draws ``--variants`` new trajectories
-from the task's own variant generator with another seed than any checkpoint's data or fresh
-validation variants (``train_surrogate.py --val-fresh``; the same distribution, none of them trained
-on or selected by), simulates them with the LGVI (cached in ``--data-dir`` like
+from the task's own variant generator with another seed than any checkpoint or a model it was made from
+trained on or was selected by (:func:`~cmlearn.surrogate.evaluate.used_seeds`: the data, ``--val-fresh``,
+refinement and blend seeds its metadata records; the same distribution, none of them trained on or selected
+by), simulates them with the LGVI (cached in ``--data-dir`` like
 a training dataset), rolls every checkpoint out free-running on each from its first frames (as the
 held-out scenes are: from rest, or from the start of their load), and ranks the checkpoints by the
 mean over the variants of the node of interest's largest error on any axis. Prints a markdown table
@@ -23,7 +24,7 @@ import torch
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
-from cmlearn.surrogate.evaluate import fresh_errors, fresh_score
+from cmlearn.surrogate.evaluate import fresh_errors, fresh_score, used_seeds
 
 
 def variant_info(info) -> object:
@@ -54,11 +55,9 @@ def main(argv=None) -> dict:
     if task.custom:
         ap.error(f"checkpoints: task {task.name!r} has its own evaluation, not supported here")
     for path, _, meta in loaded:
-        if meta.get("data_seed") == a.seed:
-            ap.error(f"--seed {a.seed} is the data seed of {path}: its variants were trained on")
-        args = meta.get("args", {})
-        if args.get("val_fresh") and args.get("val_seed") == a.seed:
-            ap.error(f"--seed {a.seed} drew the validation variants of {path}: they selected it")
+        how = used_seeds(meta).get(a.seed)
+        if how:
+            ap.error(f"--seed {a.seed} is no fresh seed for {path}: {how}")
     # variant 0 of the generator is the printed scene (trained on): drawn, then left out of the ranking
     data = cached_dataset(task, a.variants + 1, a.seed, a.data_dir, a.duration or None)
     rows = []

@@ -1258,3 +1258,16 @@ def test_the_rest_output_is_not_reused_for_a_new_reference_at_a_freed_ones_addre
             break
         kept.append(y)
     assert torch.equal(engine.rest_accel(y), want)
+
+
+def test_used_seeds_follow_a_checkpoints_selections_and_provenance():
+    """A seed that trained or selected a checkpoint, or a model it was made from, is no fresh seed for it (the
+    shipped blend's selection seed 1 was missed when only its data and validation seeds were read)."""
+    from cmlearn.surrogate.evaluate import used_seeds
+    meta = {"data_seed": 0, "args": {"val_fresh": 0, "val_seed": 9},
+            "blend": {"fresh": {"seed": 1}, "end": {"command": "python scripts/refine_surrogate.py A.pt --val-seed 4"}},
+            "refine": {"select": {"seed": 5}},
+            "init_from": {"command": "python scripts/train_surrogate.py --task semicircle --seed 6 --train-seed 7"}}
+    assert sorted(used_seeds(meta)) == [0, 1, 4, 5, 6]
+    assert "blend" in used_seeds(meta)[1] and 9 not in used_seeds(meta)  # no fresh validation: 9 drew nothing
+    assert 1 in used_seeds(json.loads((ROOT / "checkpoints/semicircle.json").read_text()))

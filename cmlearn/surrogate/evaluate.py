@@ -21,7 +21,7 @@ from torch import Tensor
 
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-__all__ = ["one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest", "interest_slots",
+__all__ = ["used_seeds", "one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest", "interest_slots",
            "fresh_errors", "fresh_score", "metric_lines", "THESIS_ERRORS_MM", "thesis_errors"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
@@ -145,6 +145,32 @@ def fresh_errors(model, task, data: dict) -> list[dict]:
     ref = pos[:, eta + 1:].cpu()
     return [axis_errors(pred[v, :, slot].double(), ref[v, :, slot].double(), meta["rod_length"])
             for v in range(pred.shape[0])]
+
+
+def used_seeds(meta: dict) -> dict[int, str]:
+    """The variant seeds a checkpoint or any model it was made from trained on or was selected by (``{seed: how}``),
+    from its metadata: its data seed, its fresh validation seed, a refinement's or a blend's selection seed, and the
+    ``--seed``/``--val-seed`` of the commands in its provenance (``init_from``, a blend's ends). Fresh variants that
+    rank or score it must be drawn with another seed."""
+    import re
+    used = {}
+    if meta.get("data_seed") is not None:
+        used[int(meta["data_seed"])] = "its variants were trained on"
+    args = meta.get("args", {})
+    if args.get("val_fresh") and args.get("val_seed") is not None:
+        used.setdefault(int(args["val_seed"]), "it drew the validation variants that selected it")
+    for what, sel in (("its refinement", (meta.get("refine") or {}).get("select")),
+                      ("its blend", (meta.get("blend") or {}).get("fresh"))):
+        if isinstance(sel, dict) and sel.get("seed") is not None:
+            used.setdefault(int(sel["seed"]), f"it drew the variants that selected {what}")
+    blend = meta.get("blend") or {}
+    for src in (meta.get("init_from"), blend.get("start"), blend.get("end")):
+        cmd = src.get("command", "") if isinstance(src, dict) else ""
+        for flag, how in (("--val-seed", "a model it was made from was selected by"),
+                          ("--seed", "a model it was made from was trained on")):
+            for seed in re.findall(rf"{flag}[ =](\d+)", cmd):
+                used.setdefault(int(seed), how)
+    return used
 
 
 def fresh_score(errors: list[dict]) -> float:
