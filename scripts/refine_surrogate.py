@@ -13,11 +13,11 @@ loss seen are kept (``--max-time`` may stop the run inside a line search); with 
 lowest score on ``--val-variants`` fresh variants of the scene instead (``rank_checkpoints.py``'s score: the mean
 over the variants of the node of interest's largest free-running error, from rest), scored at the first evaluation,
 every ``--val-every``-th and the ``--max-evals``-th (``loss_best``: the kept weights' loss; a run stopped sooner, by
-``--max-time`` or by L-BFGS, leaves its evaluations after the last scored one unscored). The checkpoint's scales are kept. The
-data must be the checkpoint's own: the same hash, or, with ``--keep-scales``, any data of its task. The refined
-model is evaluated as ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out scenes) and
-written with the checkpoint's metadata, its new metrics, this command and ``init_from`` (the starting file's path,
-SHA-256, command and data hash). Position tasks only. Ends with one JSON line.
+``--max-time`` or by L-BFGS, leaves its evaluations after the last scored one unscored). The checkpoint's scales
+are kept. The data must be the checkpoint's own: the same hash, or, with ``--keep-scales``, any data of its task. The
+refined model is evaluated as ``train_surrogate.py`` evaluates (the printed scene's last 40 % and the held-out
+scenes) and written with the checkpoint's metadata, its new metrics, this command and ``init_from`` (the starting
+file's path, SHA-256, command and data hash). Position tasks only. Ends with one JSON line.
 """
 from __future__ import annotations
 

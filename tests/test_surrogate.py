@@ -202,7 +202,7 @@ def test_ellipse_training_loops_leave_out_the_printed_and_held_out_shapes():
     task = get_task("ellipse")
     var = task.variants(task.base_scene(), 64, 0)
     aspects = torch.tensor(var["info"]["aspect_h_over_w"], dtype=torch.float64)
-    assert float(aspects[0]) == pytest.approx(3.0) and var["p"].shape == (64, 59, 3)  # variant 0: the printed 0.2 m x 0.6 m loop
+    assert float(aspects[0]) == pytest.approx(3.0) and var["p"].shape == (64, 59, 3)  # variant 0: the printed loop
     log_a = aspects[1:].log()
     assert float((log_a - math.log(3.0)).abs().min()) > math.log(1.1)  # no replay of the printed loop
     assert float((log_a - math.log(1 / 3)).abs().min()) > math.log(1.25)  # the held-out loop stays unseen

@@ -21,8 +21,8 @@ from torch import Tensor
 
 from cmlearn.eval.metrics import axis_errors, rmse_t
 
-__all__ = ["used_seeds", "one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest", "interest_slots",
-           "fresh_errors", "fresh_score", "metric_lines", "THESIS_ERRORS_MM", "thesis_errors"]
+__all__ = ["used_seeds", "one_step", "node_recursive", "free_running", "evaluate", "evaluate_scenes", "from_rest",
+           "interest_slots", "fresh_errors", "fresh_score", "metric_lines", "THESIS_ERRORS_MM", "thesis_errors"]
 
 # Paper II's errors of the node of interest, (max, mean) absolute error in mm per axis x, y, z
 THESIS_ERRORS_MM = {
