@@ -711,10 +711,12 @@ def test_rank_checkpoints_on_fresh_variants(tmp_path):
     from cmlearn.surrogate import save_checkpoint
     _, meta = load_checkpoint(cks[1])  # semicircle_fast.pt, as if selected on seed-1 fresh variants
     save_checkpoint(tmp_path / "val1.pt", model, {**meta, "args": {**meta["args"], "val_fresh": 2, "val_seed": 1}})
-    for extra, msg in ((["--seed", "0"], "--seed 0 is the data seed of"),
-                       ([str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task"),
-                       (["val1.pt", "--seed", "1"], "--seed 1 drew the validation variants of val1.pt")):
-        script_fails([str(ROOT / "scripts/rank_checkpoints.py"), *cks, *extra], tmp_path, msg)
+    for args, msg in (([*cks, "--seed", "0"], "--seed 0 is no fresh seed for"),
+                      ([*cks, str(ROOT / "checkpoints" / "ellipse.pt")], "all must be of one task"),
+                      ([cks[1], "val1.pt", "--seed", "1"],
+                       "--seed 1 is no fresh seed for val1.pt: it drew the validation variants that selected it"),
+                      ([*cks, "--seed", "1"], "semicircle.pt: it drew the variants that selected its blend")):
+        script_fails([str(ROOT / "scripts/rank_checkpoints.py"), *args], tmp_path, msg)
 
 
 def test_report_node_recursion_splits_the_free_running_error(tmp_path):
