@@ -66,7 +66,7 @@ class Segment:
         if not isinstance(self.material, Material):
             raise TypeError(f"Segment.material must be a Material, got {type(self.material)}")
         object.__setattr__(self, "intrinsic_curvature", finite_vector("Segment.intrinsic_curvature",
-                                                                   self.intrinsic_curvature))
+                                                                      self.intrinsic_curvature))
         object.__setattr__(self, "intrinsic_strain", finite_vector("Segment.intrinsic_strain", self.intrinsic_strain))
 
     def stiffness(self, shear_coefficient: float = 1.0) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+import physics
 from cmlearn.io import save_torch_atomic
 from physics.errors import SolverError
 from physics.lie import so3_exp, so3_log
@@ -186,7 +187,6 @@ def cached_static_track(path: str | Path | None, currents, emns, times, **kw) ->
     """:func:`static_track`, read from ``path`` where it holds the same ``times``, keywords ``kw`` (clamp, nodes,
     ``truncate``) and physics version (and written there, atomically, where it does not); ``None``: no cache. The
     file does not know the currents: name it after them."""
-    import physics
     times = [float(t) for t in times]
     key = {"times": times, "physics_version": physics.__version__,
            "kw": {k: v.tolist() if isinstance(v, Tensor) else v for k, v in sorted(kw.items())}}

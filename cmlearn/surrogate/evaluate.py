@@ -16,6 +16,8 @@ and returns per-axis max/mean absolute errors (mm, % of L) and RMSE(t) (II.2).
 """
 from __future__ import annotations
 
+import re
+
 import torch
 from torch import Tensor
 
@@ -152,7 +154,6 @@ def used_seeds(meta: dict) -> dict[int, str]:
     from its metadata: its data seed, its fresh validation seed, a refinement's or a blend's selection seed, and the
     ``--seed``/``--val-seed`` of the commands in its provenance (``init_from``, a blend's ends). Fresh variants that
     rank or score it must be drawn with another seed."""
-    import re
     used = {}
     if meta.get("data_seed") is not None:
         used[int(meta["data_seed"])] = "its variants were trained on"
