@@ -61,16 +61,18 @@ def surrogate_rollout(engine, scene, compile: bool = False) -> tuple:
 
 
 def node_errors(task, scene, p_sur, p_ref) -> tuple[dict, list, list]:
-    """Per node of interest: per-axis max/mean absolute errors and the RMSE(t) summary (mm); with the
-    nodes' slots in the surrogate's output and their labels."""
+    """Per node of interest: per-axis max/mean absolute errors and the RMSE(t) summary (mm) over the predicted
+    frames (the first, the initial state both runs start from, left out, as in the checkpoints' recorded metrics);
+    with the nodes' slots in the surrogate's output and their labels."""
     from .eval.metrics import axis_errors, rmse_t
     from .surrogate.evaluate import interest_slots
     labels = [lab for n, lab in zip(scene.nodes_of_interest, scene.node_labels) if n in task.tracked]
     slots = interest_slots(task, scene)
     nodes = {}
     for slot, label in zip(slots, labels):
-        r = rmse_t(p_sur[:, slot], p_ref[:, slot])
-        nodes[label] = {"errors": axis_errors(p_sur[:, slot], p_ref[:, slot], scene.rod.length),
+        sur, ref = p_sur[1:, slot], p_ref[1:, slot]
+        r = rmse_t(sur, ref)
+        nodes[label] = {"errors": axis_errors(sur, ref, scene.rod.length),
                         "rmse_mm": {"mean": float(r.mean()) * 1e3, "max": float(r.max()) * 1e3,
                                     "final": float(r[-1]) * 1e3}}
     return nodes, slots, labels
