@@ -541,6 +541,7 @@ def test_a_symmetric_scene_needs_one_image_per_coset_and_gets_the_same_rollout()
     assert float((compiled - rolled).abs().max()) < 1e-4 * swing
 
 
+@torch.no_grad()  # the comparisons read rollouts as floats; nothing here needs their gradients
 def test_the_rollout_carries_the_lstm_states_and_steps_as_the_window_does():
     """The engine's rollout (``Stepper``) runs each frame through the LSTM once and carries its states: from any
     history it steps the window's rollout (float64: to 1e-12 of the swing) for a mirrored, anchored model with a
