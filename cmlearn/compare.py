@@ -31,8 +31,15 @@ def task_for_scene(name: str):
     for task in TASKS.values():
         if name == task.scene or name in task.heldout:
             return task
-    valid = sorted({t.scene for t in TASKS.values()} | {h for t in TASKS.values() for h in t.heldout})
-    raise KeyError(f"no shipped surrogate covers scene {name!r}; valid: {valid}")
+    shipped, unshipped = [], []
+    for task in TASKS.values():
+        try:
+            find_checkpoint(task.name)
+            shipped += [task.scene, *task.heldout]
+        except FileNotFoundError:
+            unshipped += [task.scene, *task.heldout]
+    raise KeyError(f"no surrogate task covers scene {name!r}; scenes with a shipped checkpoint: {sorted(shipped)}; "
+                   f"without one (train it and pass --checkpoint PATH): {sorted(unshipped)}")
 
 
 def find_checkpoint(task_name: str, explicit: str | Path | None = None) -> Path:

@@ -1203,6 +1203,9 @@ def test_compare_command_runs_physics_and_surrogate(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "cmlearn", "compare", "--scene", "no_such_scene"],
                          capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert bad.returncode == 2 and "no_such_scene" in bad.stderr
+    shipped, unshipped = bad.stderr.split("scenes with a shipped checkpoint:")[1].split("without one")
+    assert "'semicircle_heldout'" in shipped and "'magnetic_rod_planar'" not in shipped
+    assert "'magnetic_rod_planar'" in unshipped and "--checkpoint" in unshipped
 
 
 def test_compare_compiled_equals_eager_and_times_its_compile_apart(monkeypatch, tmp_path):
