@@ -49,6 +49,14 @@ def parse_fails(script: str, argv: list[str], msg: str, capsys) -> None:
     assert e.value.code == 2 and msg in err, err[-500:]
 
 
+def test_the_benches_last_line_is_strict_json_rounded_to_the_digits_asked():
+    from cmlearn.eval.timing import json_line
+    line = json_line({"hz": 1234.56789, "rows": [{"ratio": 2 / 3, "bad": math.nan}], "n": 7, "inf": -math.inf},
+                     digits=4)
+    res = json.loads(line, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+    assert res == {"hz": 1235.0, "rows": [{"ratio": 0.6667, "bad": "nan"}], "n": 7, "inf": "-inf"}
+
+
 def test_bench_lgvi_quick(tmp_path):
     pytest.importorskip("elastica")
     res = run_script([str(ROOT / "scripts/bench/lgvi.py"), "--quick", "--no-compile", "--window", "0.05",

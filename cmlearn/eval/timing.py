@@ -1,8 +1,25 @@
-"""Wall time of the LGVI on a scene, in blocks of one rollout continued from call to call (the benchmarks' peer)."""
+"""What the benchmarks share: the wall time of the LGVI on a scene, in blocks of one rollout continued from call to
+call (their peer), and their last line, the results as JSON."""
 from __future__ import annotations
 
+import json
+import math
 import time
 from typing import Callable
+
+
+def json_line(result, digits: int = 6) -> str:
+    """``result`` (nested dicts and lists) as one line of JSON, floats rounded to ``digits`` significant digits and
+    non-finite ones written as strings (``"nan"``, ``"inf"``), which JSON has no numbers for."""
+    def rounded(x):
+        if isinstance(x, float):
+            return float(f"{x:.{digits}g}") if math.isfinite(x) else str(x)
+        if isinstance(x, (list, tuple)):
+            return [rounded(v) for v in x]
+        if isinstance(x, dict):
+            return {k: rounded(v) for k, v in x.items()}
+        return x
+    return json.dumps(rounded(result))
 
 
 def lgvi_blocks(scene, steps: int, compiled: bool, steps_per_call: int = 4) -> tuple[Callable[[], float], float, object]:

@@ -25,7 +25,6 @@ minute here, reported as ``compile_s`` and excluded from the steady-state figure
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import time
@@ -36,6 +35,7 @@ import numpy as np
 import scipy.optimize
 import torch
 
+from cmlearn.eval.timing import json_line
 from physics.cosserat_shooting import CosseratSolver
 from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
 
@@ -247,7 +247,7 @@ def main(argv=None):
     print(f"speed-up vs scipy: warm {out['speedup_vs_scipy_warm']:.1f}x, cold {out['speedup_vs_scipy_cold']:.1f}x, "
           f"batched {out['batched_speedup_vs_scipy_warm']:.0f}x; tips agree to {out['max_tip_diff_vs_scipy_m']:.1e} m "
           f"({1 + min(n_chk, args.batch)} problems); thesis (Fig. II.13): 8.33-50 Hz")
-    print(json.dumps({k: (float(f"{v:.6g}") if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}))
+    print(json_line(out))
     return out
 
 

@@ -19,7 +19,6 @@ Timings synchronise the device before reading the clock. ``--device cpu`` runs b
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -29,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.eval.timing import json_line
 from physics import LGVI, Loads, UniformField
 from physics.cosserat_shooting import CosseratSolver
 from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
@@ -184,16 +184,7 @@ def main(argv=None):
         print(f"surrogate float32 batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} node-steps/s "
               f"(x{row['ratio_dev_over_cpu']:.2f}); max |device - CPU| {diff:.1e} m")
 
-    def rounded(x):
-        if isinstance(x, float):
-            return float(f"{x:.4g}") if math.isfinite(x) else str(x)
-        if isinstance(x, list):
-            return [rounded(v) for v in x]
-        if isinstance(x, dict):
-            return {k: rounded(v) for k, v in x.items()}
-        return x
-
-    print(json.dumps(rounded(out)))
+    print(json_line(out, digits=4))
     return out
 
 

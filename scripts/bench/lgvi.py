@@ -10,8 +10,6 @@ Prints human-readable lines and, last, one JSON line. ``--quick`` keeps it near 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import platform
 import time
 import warnings
@@ -20,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cmlearn.eval.timing import json_line
 from physics import LGVI, CircularSection, Loads, Magnet, Material, Rod
 
 DT = 9e-5
@@ -191,7 +190,7 @@ def main(argv=None):
     print(f"single-rod time ratio ours/PyElastica = {out['single_time_ratio_vs_pyelastica']:.2f}; batched speed-up = "
           f"{out['batched_speedup_vs_pyelastica']:.1f}x; real-time factor = {out['rtf_pdms_tip_magnet']:.2f} "
           f"(eager {out['rtf_pdms_tip_magnet_eager']:.2f})")
-    print(json.dumps({k: (float(f"{v:.6g}") if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}))
+    print(json_line(out))
     return out
 
 
