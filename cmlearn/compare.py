@@ -105,8 +105,6 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
     from .surrogate import Surrogate
 
     task = task_for_scene(scene_name)
-    if task.custom:  # e.g. the magnetic rod (adds magnet orientation errors in degrees)
-        return task.hook("compare_scene")(task, scene_name, checkpoint, duration, compile)
     scene = task.scene_by_name(scene_name)
     if duration:
         from dataclasses import replace
@@ -119,10 +117,13 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
     L = scene.rod.length
     t = torch.arange(p_ref.shape[0]) * task.delta
     nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
-    return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
-            "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur,
-            "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "checkpoint_metrics": engine.meta.get("metrics", {}),
-            "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}
+    res = {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
+           "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur,
+           "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "checkpoint_metrics": engine.meta.get("metrics", {}),
+           "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}
+    if task.custom:  # e.g. the magnetic rod (adds magnet orientation errors in degrees)
+        res.update(task.hook("compare_scene")(task, scene, p_ref, p_sur, t))
+    return res
 
 
 def _plots(res: dict, out: Path) -> list[Path]:

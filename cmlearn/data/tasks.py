@@ -150,7 +150,7 @@ class SurrogateTask:
     physics is symmetric under, each a world axis with its tracked nodes kept (``"same"``) or reversed
     along the rod (``"reversed"``), that a model may be made equivariant under
     (``model_config(mirror=...)``). ``custom`` names a module that replaces the node-position physics for
-    tasks that need more (it provides ``simulate``, ``evaluate``, ``run_scene``, ``short_check`` and
+    tasks that need more (it provides ``simulate``, ``rollout``, ``evaluate``, ``run_scene``, ``short_check`` and
     ``compare_scene``; see :mod:`cmlearn.surrogate.magnetic`). ``equilibrium(scene)``, where given, is the
     rod's node positions (N+1, 3) at rest in the one equilibrium every variant shares, which a rest-anchored
     model holds (``NodeLSTMConfig.rest_shape``) in place of its reference shape."""

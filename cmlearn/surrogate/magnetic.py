@@ -41,7 +41,7 @@ from physics.magnetics.field_table import CoilFieldTable
 
 from .evaluate import from_rest, interest_slots, one_step
 
-__all__ = ["MAGNETS", "simulate", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
+__all__ = ["MAGNETS", "simulate", "rollout", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
            "closed_loop_wrench", "nudged_free_running", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
            "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "closed_loop_program", "check_workspace",
            "closed_loop_latency", "reference_profiles", "profile_start"]
@@ -379,26 +379,14 @@ def short_check(engine, scene_name: str, duration: float, data_dir=None) -> dict
             "max_orientation_err_deg": float(err.abs().max())}
 
 
-def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None = None, compile: bool = False) -> dict:
-    """:func:`cmlearn.compare.compare_scene` for the magnetic rod: positions as there (with ``compile`` the LGVI's
-    compiled rollout too), plus the magnets' orientation errors (deg) of the surrogate (closed loop, compiled where
-    asked), of the static Cosserat model and, where ``checkpoints/<task>_quasistatic.pt`` is shipped, of the
-    quasi-static hybrid (:mod:`cmlearn.surrogate.quasistatic`) on the same static track."""
-    from cmlearn.compare import compiled_lgvi_facts, find_checkpoint, node_errors, surrogate_rollout
-
-    from .engine import Surrogate
-    scene = task.scene_by_name(scene_name)
-    if duration:
-        scene = replace(scene, duration=duration)
-    engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)
-    p_ref, _, wall_ref = rollout(task, scene)
-    p_sur, wall_sur, facts = surrogate_rollout(engine, scene, compile)
-    if compile:
-        facts.update(compiled_lgvi_facts(task, scene, p_ref, wall_sur))
-    p_ref = p_ref.float()
-    rod, L = scene.rod, scene.rod.length
-    t = torch.arange(p_ref.shape[0]) * task.delta
-    nodes, slots, labels = node_errors(task, scene, p_sur, p_ref)
+def compare_scene(task, scene, p_ref: torch.Tensor, p_sur: torch.Tensor, t: torch.Tensor) -> dict:
+    """:func:`cmlearn.compare.compare_scene`'s part for the magnetic rod, from the LGVI's and the surrogate's tracked
+    points ``p_ref``, ``p_sur`` at times ``t``: the magnets' orientation errors (deg) of the surrogate (closed loop)
+    and of the static Cosserat model, and, where ``checkpoints/<task>_quasistatic.pt`` is shipped, of the
+    quasi-static hybrid (:mod:`cmlearn.surrogate.quasistatic`) on the same static track, with the wall times of
+    the last two."""
+    from cmlearn.compare import find_checkpoint
+    rod = scene.rod
     R_ref = magnet_frames(task, rod, p_ref[1:].double())[1]
     orient = {"surrogate": orientation_stats(orientation_errors(magnet_frames(task, rod, p_sur[1:].double())[1], R_ref))}
     track = static_track(scene.loads.field.currents, scene.loads.field.emns, t.tolist(), **base_pose(scene))
@@ -416,8 +404,4 @@ def compare_scene(task, scene_name: str, checkpoint=None, duration: float | None
         R_hyb = hyb.run(scene, track=track)[1]
         hybrid = {"hybrid_wall_s": wall_cos + time.perf_counter() - t0}
         orient["hybrid"] = orientation_stats(orientation_errors(R_hyb, R_ref))
-    return {"scene": scene.name, "task": task.name, "duration_s": float(t[-1]), "surrogate_step_s": task.delta,
-            "rod_length_m": L, "lgvi_wall_s": wall_ref, "surrogate_wall_s": wall_sur, "cosserat_wall_s": wall_cos,
-            **hybrid, "speedup": wall_ref / wall_sur, **facts, "nodes": nodes, "orientation_deg": orient,
-            "checkpoint_metrics": engine.meta.get("metrics", {}),
-            "_series": {"t": t, "ref": p_ref, "sur": p_sur, "slots": slots, "labels": labels}}
+    return {"cosserat_wall_s": wall_cos, **hybrid, "orientation_deg": orient}
