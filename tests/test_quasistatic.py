@@ -120,9 +120,9 @@ def test_lightning_training_lowers_the_rollout_loss_and_the_checkpoint_round_tri
     trainer = L.Trainer(max_epochs=20, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         limit_train_batches=20, num_sanity_val_steps=0)
     everything = next(iter(torch.utils.data.DataLoader(dm.train_set, batch_size=len(dm.train_set))))
-    before = float(module.loss(everything))
+    before = float(module.loss(everything).detach())
     trainer.fit(module, datamodule=dm)
-    after = float(module.loss(everything))  # the rollout loss over every training window
+    after = float(module.loss(everything).detach())  # the rollout loss over every training window
     assert after < 0.8 * before, (before, after)
     dev, st, target = everything  # the squared loss: the mean square of the same scaled errors
     e = (model.rollout(dev, st) - target) / model.dev_scale
@@ -162,6 +162,14 @@ def test_the_shipped_hybrid_reproduces_its_recorded_check_and_beats_the_static_r
     assert fresh["profiles"] == 8 and fresh["hybrid"]["median"] < 0.6 * fresh["static"]["median"]
     for case, res in metrics.items():  # the recorded figures the README prints
         assert res["hybrid"]["sum_mean_deg"] < 0.6 * res["static"]["sum_mean_deg"], case
+    from dataclasses import replace
+
+    from cmlearn.data import get_task
+    with pytest.raises(ValueError, match="scene 'semicircle': its rod .* task 'magnetic_rod'"):
+        engine.run(get_task("semicircle").base_scene())
+    scene = get_task("magnetic_rod").base_scene()
+    with pytest.raises(ValueError, match="has no coil field"):
+        engine.stepper(replace(scene, loads=replace(scene.loads, field=None)))
 
 
 def test_the_stability_margin_falls_to_zero_at_a_snap_through():

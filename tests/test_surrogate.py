@@ -1130,6 +1130,19 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
         load_checkpoint(tmp_path / "other.pt")
 
 
+def test_a_scene_of_another_rod_is_a_clear_error():
+    engine = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt")
+    with pytest.raises(ValueError, match=r"scene 'ellipse': its rod \(59 nodes.*task 'semicircle' \(101 nodes"):
+        engine.run_scene(get_task("ellipse").base_scene())
+    with pytest.raises(ValueError, match="scene 'square_tracking'"):
+        engine.step_latency(n=1, warmup=0, scene=get_task("square_tracking").base_scene())
+    with pytest.raises(TypeError, match="scene: expected a physics Scene.*got str"):
+        engine.run_scene("semicircle")
+    magnetic = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt")  # a task with its own rollout
+    with pytest.raises(ValueError, match="task 'magnetic_rod'"):
+        magnetic.run_scene(get_task("semicircle").base_scene())
+
+
 def test_every_shipped_checkpoint_carries_the_digest_of_its_weights():
     from cmlearn.io import weights_digest
     shipped = sorted((ROOT / "checkpoints").glob("*.pt"))

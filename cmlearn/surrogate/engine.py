@@ -31,7 +31,7 @@ from physics.programs import compile_program
 
 from .checkpoint import CheckpointError, load_checkpoint
 
-__all__ = ["Stepper", "Surrogate", "SurrogateDivergence", "check_rollout", "load_checkpoints"]
+__all__ = ["Stepper", "Surrogate", "SurrogateDivergence", "check_rollout", "check_scene", "load_checkpoints"]
 
 
 def median_latency(call, n: int, warmup: int) -> float:
@@ -44,6 +44,18 @@ def median_latency(call, n: int, warmup: int) -> float:
         call()
         times.append(time.perf_counter() - t0)
     return sorted(times)[n // 2]
+
+
+def check_scene(task: SurrogateTask, scene) -> None:
+    """TypeError unless ``scene`` is a scene, ValueError unless its rod is ``task``'s (nodes and length): a
+    surrogate knows its nodes by their index along that rod."""
+    if not (hasattr(scene, "rod") and hasattr(scene, "initial_configuration")):
+        raise TypeError(f"scene: expected a physics Scene (e.g. get_task({task.name!r}).scene_by_name(NAME)), "
+                        f"got {type(scene).__name__}")
+    own, rod = task.base_scene().rod, scene.rod
+    if rod.n_nodes != own.n_nodes or abs(rod.length - own.length) > 1e-9 * own.length:
+        raise ValueError(f"scene {scene.name!r}: its rod ({rod.n_nodes} nodes, {rod.length:.4g} m) is not the rod of "
+                         f"task {task.name!r} ({own.n_nodes} nodes, {own.length:.4g} m), which this surrogate models")
 
 
 class SurrogateDivergence(RuntimeError):
@@ -134,7 +146,11 @@ class Surrogate:
 
     def _initial_points(self, scene) -> Tensor:
         """The tracked nodes' initial positions (n_tracked, 3), float32."""
+        self._check_scene(scene)
         return scene.initial_configuration()["p"][list(self.task.tracked)].float()
+
+    def _check_scene(self, scene) -> None:
+        check_scene(self.task, scene)
 
     @torch.no_grad()
     def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
@@ -196,6 +212,7 @@ class Surrogate:
         scene's initial shape), and the wall time of the rollout including the force evaluation. A task with
         its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead.
         :class:`SurrogateDivergence` where the rollout runs away (:func:`check_rollout`)."""
+        self._check_scene(scene)
         hook = self.task.hook("run_scene")
         if hook is not None:
             out = hook(self, scene, duration)

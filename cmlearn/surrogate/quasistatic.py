@@ -31,6 +31,7 @@ from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from physics.lie import so3_exp
 
 from .checkpoint import read_blob
+from .engine import check_scene
 from .magnetic import base_pose, orientation_errors, orientation_stats
 
 __all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "scene_track", "profile_tracks",
@@ -176,6 +177,7 @@ class QuasiStaticSurrogate:
         of its duration), and the static track's. From rest where ``start`` is 0 (deviations zero before t = 0);
         from frame ``start`` of the LGVI's ``positions`` (its true deviations before) otherwise. ``track``: the
         scene's :class:`~cmlearn.data.quasistatic.StaticTrack` at its T frames where already solved."""
+        self._check_scene(scene)
         T = int(round(scene.duration / self.task.delta)) + 1
         if positions is None:
             if start:
@@ -191,6 +193,14 @@ class QuasiStaticSurrogate:
         cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
         return cp, Rp, P[start + 1:], R[start + 1:]
 
+    def _check_scene(self, scene) -> None:
+        """:func:`~cmlearn.surrogate.engine.check_scene`, and a ValueError unless the scene's rod hangs in a coil
+        field, whose currents the hybrid solves for."""
+        check_scene(self.task, scene)
+        if not hasattr(getattr(scene.loads, "field", None), "currents"):
+            raise ValueError(f"scene {scene.name!r} has no coil field (loads.field with currents), which the "
+                             "quasi-static hybrid solves in")
+
     def stepper(self, scene, compile: bool = False, predictor: bool = True, **kw):
         """The real-time hybrid in ``scene``'s coils and clamp, at rest at zero current
         (:class:`~cmlearn.surrogate.quasistatic_stepper.QuasiStaticStepper`: ``step(currents)`` -> the next frame's
@@ -198,6 +208,7 @@ class QuasiStaticSurrogate:
         workspace and the rest of the step one program compiled ahead of time; the first solve compiles (about three
         minutes here, seconds from inductor's cache)."""
         from .quasistatic_stepper import QuasiStaticStepper
+        self._check_scene(scene)
         return QuasiStaticStepper(self.model, self.rest, scene.loads.field.emns, base_pose(scene), self.task.delta,
                                   compile=compile, predictor=predictor, programs=self._programs, **kw)
 
