@@ -1130,7 +1130,7 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
         load_checkpoint(tmp_path / "other.pt")
 
 
-def test_a_scene_of_another_rod_is_a_clear_error():
+def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
     engine = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt")
     with pytest.raises(ValueError, match=r"scene 'ellipse': its rod \(59 nodes.*task 'semicircle' \(101 nodes"):
         engine.run_scene(get_task("ellipse").base_scene())
@@ -1138,6 +1138,19 @@ def test_a_scene_of_another_rod_is_a_clear_error():
         engine.step_latency(n=1, warmup=0, scene=get_task("square_tracking").base_scene())
     with pytest.raises(TypeError, match="scene: expected a physics Scene.*got str"):
         engine.run_scene("semicircle")
+    N, K, W = len(engine.task.tracked), len(engine.task.modeled), engine.eta + 1
+    hist, wrench, ref = torch.zeros(1, W, N, 3), torch.zeros(1, K, 3), torch.zeros(1, N, 3)
+    assert engine.step(hist, wrench, ref).shape == (1, K, 3)
+    with pytest.raises(ValueError, match=rf"wrench must be \(B, K modelled nodes, 3\) = \(1, {K}, 3\), got \(1, 2, 3\)"):
+        engine.step(hist, wrench[:, :2], ref)
+    with pytest.raises(ValueError, match="hist must be"):
+        engine.step(hist[:, :, :5], wrench, ref)
+    with pytest.raises(ValueError, match="ref must be"):
+        engine.stepper(hist, ref[0])
+    with pytest.raises(ValueError, match="duration must be a positive time"):
+        engine.run_scene(get_task("semicircle").base_scene(), duration=-1.0)
+    with pytest.raises(ValueError, match="n must be >= 1"):
+        engine.step_latency(n=0)
     magnetic = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt")  # a task with its own rollout
     with pytest.raises(ValueError, match="task 'magnetic_rod'"):
         magnetic.run_scene(get_task("semicircle").base_scene())

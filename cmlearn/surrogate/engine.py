@@ -58,6 +58,18 @@ def check_scene(task: SurrogateTask, scene) -> None:
                          f"task {task.name!r} ({own.n_nodes} nodes, {own.length:.4g} m), which this surrogate models")
 
 
+def check_inputs(model, eta: int, hist: Tensor, ref: Tensor, wrench: Tensor | None = None) -> None:
+    """ValueError naming the first of a step's inputs whose shape is not the model's: the history (B, eta+1,
+    n_tracked, 3), the reference shape (B, n_tracked, 3) and the modelled nodes' forces (B, K, 3)."""
+    N, K = model.config.n_tracked, model.idx_modeled.numel()
+    B = hist.shape[0] if hist.ndim else "B"
+    for name, x, dims, shape in (("hist", hist, "(B, eta + 1, n_tracked, 3)", (B, eta + 1, N, 3)),
+                                 ("ref", ref, "(B, n_tracked, 3)", (B, N, 3)),
+                                 ("wrench", wrench, "(B, K modelled nodes, 3)", (B, K, 3))):
+        if x is not None and tuple(x.shape) != shape:
+            raise ValueError(f"{name} must be {dims} = {shape}, got {tuple(x.shape)}")
+
+
 class SurrogateDivergence(RuntimeError):
     """A free-running surrogate rollout went non-finite or left every shape the rod can take."""
 
@@ -104,7 +116,11 @@ class Surrogate:
         output at rest is computed once per reference tensor (again when it is replaced or changed in
         place). A ``chord_projection`` model then moves them so that every tracked chord keeps its length in
         ``ref``, the anchors held where the last frame has them (clamped)."""
-        pk = self._step(hist, wrench, ref, self.rest_accel(ref))
+        try:
+            pk = self._step(hist, wrench, ref, self.rest_accel(ref))
+        except Exception:  # checked only on failure: a check on every call would cost the real-time step
+            check_inputs(self.model, self.eta, hist, ref, wrench)
+            raise
         if self.model.config.chord_projection:
             idx = self.model.idx_modeled
             with torch.no_grad():
@@ -213,6 +229,8 @@ class Surrogate:
         its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead.
         :class:`SurrogateDivergence` where the rollout runs away (:func:`check_rollout`)."""
         self._check_scene(scene)
+        if duration is not None and not duration > 0:
+            raise ValueError(f"duration must be a positive time (s) or None for the scene's, got {duration}")
         hook = self.task.hook("run_scene")
         if hook is not None:
             out = hook(self, scene, duration)
@@ -244,6 +262,8 @@ class Surrogate:
         shape with every mirror image (any input). Given a ``scene``, its rollout as :meth:`run_scene` steps it
         (:meth:`stepper`, the images its symmetries leave): from its initial shape with its own forces, starting
         again at its end."""
+        if n < 1 or warmup < 0:
+            raise ValueError(f"step_latency: n must be >= 1 and warmup >= 0, got n={n}, warmup={warmup}")
         K, N, W = self.model.idx_modeled.numel(), self.model.config.n_tracked, self.eta + 1
         if scene is None:
             hist = torch.zeros(1, W, N, 3)
@@ -277,9 +297,7 @@ class Stepper:
 
     def __init__(self, engine: Surrogate, hist: Tensor, ref: Tensor):
         model, E = engine.model, engine.eta
-        if hist.ndim != 4 or hist.shape[1] != E + 1 or hist.shape[2:] != (model.config.n_tracked, 3):
-            raise ValueError(f"hist must be (B, eta + 1 = {E + 1}, n_tracked = {model.config.n_tracked}, 3), got "
-                             f"{tuple(hist.shape)}")
+        check_inputs(model, E, hist, ref)
         self.model, self.ref, self.axes = model, ref, model.symmetry_axes
         B, K = hist.shape[0], model.idx_modeled.numel()
         # h and c in one tensor (2, eta + 1, G * B * K, hidden): an input and an output fewer, 0.5 us of a 64 us step
