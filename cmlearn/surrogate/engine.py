@@ -162,11 +162,8 @@ class Surrogate:
 
     def _initial_points(self, scene) -> Tensor:
         """The tracked nodes' initial positions (n_tracked, 3), float32."""
-        self._check_scene(scene)
-        return scene.initial_configuration()["p"][list(self.task.tracked)].float()
-
-    def _check_scene(self, scene) -> None:
         check_scene(self.task, scene)
+        return scene.initial_configuration()["p"][list(self.task.tracked)].float()
 
     @torch.no_grad()
     def _eager_step(self, hist: Tensor, wrench: Tensor, ref: Tensor, rest: Tensor | None) -> Tensor:
@@ -228,7 +225,7 @@ class Surrogate:
         scene's initial shape), and the wall time of the rollout including the force evaluation. A task with
         its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead.
         :class:`SurrogateDivergence` where the rollout runs away (:func:`check_rollout`)."""
-        self._check_scene(scene)
+        check_scene(self.task, scene)
         if duration is not None and not duration > 0:
             raise ValueError(f"duration must be a positive time (s) or None for the scene's, got {duration}")
         hook = self.task.hook("run_scene")
