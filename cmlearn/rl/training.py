@@ -178,7 +178,10 @@ def _make_collector(cfg: AgentTrainConfig, actor, env_kwargs: dict, start_seed: 
     from torchrl.collectors import Collector, MultiSyncCollector
 
     from .torchrl_env import make_batched_env
-    common = dict(frames_per_batch=cfg.frames_per_batch, total_frames=-1, init_random_frames=init_random or None)
+    # the agent is feed-forward: no recurrent state to prime, so the collector leaves the env as it is (TorchRL 0.15
+    # would otherwise append an InitTracker by default, and 0.14 warns that it will)
+    common = dict(frames_per_batch=cfg.frames_per_batch, total_frames=-1, init_random_frames=init_random or None,
+                  auto_register_policy_transforms=False)
     if cfg.workers == 1:
         col = Collector(make_batched_env(cfg.num_envs, seed=None, **env_kwargs), actor, **common)
     else:
