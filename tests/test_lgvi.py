@@ -394,7 +394,8 @@ def test_compiled_rollout_falls_back_to_torch_compile_for_untraceable_loads():
     rod = pdms_rod(4)
     tip = torch.zeros(rod.n_nodes, 3, dtype=D)
     tip[-1, 0] = 1e-3
-    sim = LGVI(rod, dt=safe_dt(rod), loads=Loads(force=lambda t: tip if float(t) < 4 * safe_dt(rod) else None))
+    dt = safe_dt(rod)
+    sim = LGVI(rod, dt=dt, loads=Loads(force=lambda t: tip if float(t) < 4 * dt else None))
     s0 = sim.initial_state()
     eager, _ = sim.simulate(s0, n_steps=8, record_every=8)
     with pytest.warns(RuntimeWarning, match="could not be traced into a program"):
