@@ -423,7 +423,8 @@ class LGVI:
             cache = (lambda: field.cache()) if field is not None else (lambda: ())  # noqa: E731
             try:
                 with tracing():
-                    prog = compile_program(traced, (*(x.contiguous() for x in inputs), *cache()), direct=True)
+                    prog = compile_program(traced, (*(x.contiguous() for x in inputs), *cache()), direct=True,
+                                          vectorize=False)
                 fn = lambda *s: prog(*(x.contiguous() for x in s), *cache())  # noqa: E731
             except Exception as err:  # noqa: BLE001 - a load that cannot be traced for fixed shapes
                 warnings.warn(f"compiled_rollout: the loads could not be traced into a program ({type(err).__name__}: "

@@ -41,7 +41,8 @@ def tracing():
 
 
 def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool = False,
-                    direct: bool = False, ahead_of_time: bool = True, fast_exp: bool = False) -> Callable:
+                    direct: bool = False, ahead_of_time: bool = True, fast_exp: bool = False,
+                    vectorize: bool = True) -> Callable:
     """``make_fx`` (fake tensors; tensors held by ``fn`` itself, e.g. module weights, become constants)
     + ``torch._inductor.compile`` of ``fn(*inputs)`` for these shapes. oneDNN is off while tracing,
     so that an LSTM decomposes into matrix products and pointwise gates that inductor fuses, instead
@@ -72,7 +73,12 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     ``exp`` carries every sigmoid and tanh of a compiled surrogate step (``node_lstm._program_sigmoid``): the
     two-image Simulation III carried step 67.0 -> 63.8 us (``scripts/bench/surrogate_program.py``, Sleef's call 13 %
     of the step in ``perf``). Ignored for CUDA programs (Triton's ``exp``). Ahead of time, each library has a folder
-    of its own (:func:`_library_dir`); just in time, inductor's caches are bypassed."""
+    of its own (:func:`_library_dir`); just in time, inductor's caches are bypassed.
+
+    ``vectorize=False``: the C++ kernels as scalar loops (inductor's ``cpp.vec_isa_ok`` off), left to the C++
+    compiler. For programs whose innermost dimension is a 3-vector or a 3 x 3 matrix (the LGVI's step): inductor
+    vectorises that dimension with masked 16-lane vectors that use 3 of their lanes, where the compiler unrolls the
+    scalar loop; the batched LGVI step ran 2.2x faster so (``scripts/bench/lgvi.py``, ``docs/lgvi_speed.md``)."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 
@@ -98,6 +104,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     mode = ("aot" if ahead_of_time and cpu else "direct") if direct else "wrapped"
     options = {"max_fusion_size": 100000, "cpp_wrapper": True} if mode != "aot" else \
         {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "intermediates"}
+    if not vectorize:
+        options["cpp.vec_isa_ok"] = False
     if mode == "aot":  # a library of its own for each graph, its constants and options (see _library_dir)
         options = {**options, "aot_inductor.output_path": _library_dir(gm, inputs, options, fast_exp)}
     elif fast_exp:  # apart from programs with Sleef's exp: the JIT path's caches are keyed on the graph

@@ -83,3 +83,17 @@ def test_programs_that_differ_only_in_their_constants_compute_with_their_own(mod
     x = torch.linspace(-1.0, 1.0, 7)
     for c in (torch.full((7,), 0.5), torch.full((7,), -2.0), torch.full((7,), 0.5)):
         assert torch.allclose(compile_program(scaled(c), [x], **MODES[mode])(x), scaled(c)(x), atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_a_scalar_program_equals_the_vectorised_one_on_trailing_three_vectors(mode):
+    """``vectorize=False`` (inductor's C++ kernels as scalar loops; the LGVI's step, whose innermost dimension is a
+    3-vector) is accepted on every call path and computes what the vectorised program and the function do, for a
+    batch that is not a multiple of any vector width."""
+    torch.manual_seed(1)
+    a, b = torch.randn(37, 11, 3, dtype=torch.float64), torch.randn(37, 11, 3, dtype=torch.float64)
+    fn = lambda a, b: torch.linalg.cross(a, b, dim=-1) / (1 + (a * b).sum(-1, keepdim=True) ** 2)  # noqa: E731
+    want = fn(a, b)
+    for vec in (True, False):
+        got = compile_program(fn, [a, b], **MODES[mode], vectorize=vec)(a, b)
+        assert torch.allclose(got, want, rtol=0, atol=1e-14)
