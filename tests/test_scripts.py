@@ -67,6 +67,7 @@ def test_bench_lgvi_quick(tmp_path):
         assert key in res
     assert res["single_rod_us_per_step"] > 0 and res["tip_diff_vs_pyelastica_at_0.1s_pct_L"] < 10
     assert res["pyelastica_batch_rods"] == res["batch"] == 8  # the same rods on both sides
+    assert res["rounds"] == 1 and len(res["pyelastica_node_steps_per_s_runs"]) == 1  # --quick: one round
 
 
 def test_bench_dataset_quick(tmp_path):

@@ -5,7 +5,11 @@ rho 1101, nu 0.5, 10 elements, tip magnet 9.6e-5 kg as a lumped mass), clamped-f
 perpendicular to the rod, at the printed time step 9e-5 s, float64. PyElastica gets the same
 rod, masses, gravity and time step (its tip-node mass is raised by the magnet's mass).
 
-Prints human-readable lines and, last, one JSON line. ``--quick`` keeps it near a minute.
+PyElastica and ours (eager and compiled, single rod and batched) are timed in ``--rounds`` interleaved rounds, each
+timing every one of them once in turn, and the medians are reported (the runs of the batched figures too): on a
+shared machine one window of the peer's and one of ours could fall on different turns of its load (PyElastica's
+batch ranged over 1.0-1.9e6 node-steps/s in single windows on 2026-12-04). Prints human-readable lines and, last, one
+JSON line. ``--quick`` keeps it near a minute.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ import platform
 import time
 import warnings
 from dataclasses import dataclass
+from statistics import median
 
 import numpy as np
 import torch
@@ -34,6 +39,7 @@ class Args:
     steps_per_call: int = 4
     compile: bool = True
     window: float | None = None
+    rounds: int = 0
 
 
 def pdms_tip_magnet_rod(n_elements: int) -> Rod:
@@ -91,11 +97,13 @@ def main(argv=None):
     ap.add_argument("--steps-per-call", type=int, default=Args.steps_per_call)
     ap.add_argument("--no-compile", dest="compile", action="store_false")
     ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.5 quick, 2 full)")
+    ap.add_argument("--rounds", type=int, default=0, help="interleaved timing rounds (default 1 quick, 3 full)")
     args = Args(**vars(ap.parse_args(argv)))
     if args.quick:  # a small batch, the same on both sides
         args.batch = min(args.batch, 64)
     torch.set_num_threads(args.threads)
     window = args.window or (0.5 if args.quick else 2.0)
+    args.rounds = args.rounds or (1 if args.quick else 3)
     rod = pdms_tip_magnet_rod(args.n_elements)
     n = rod.n_nodes
     out = {"problem": "pdms_tip_magnet (Table I.6)", "n_elements": rod.N, "n_nodes": n, "dt": DT, "dtype": "float64",
@@ -106,71 +114,76 @@ def main(argv=None):
     import elastica
 
     out["pyelastica"] = getattr(elastica, "__version__", "1.0")
-    pe_step, pe_rods = pyelastica_system(rod, 1)
-    t_pe = timeit(lambda: pe_step(50), window) / 50
-    out["pyelastica_us_per_step"] = t_pe * 1e6
+    pe_step, _ = pyelastica_system(rod, 1)
     pe_batch = args.batch  # the same rods on both sides (--quick sets a small batch for both)
     pe_bstep, _ = pyelastica_system(rod, pe_batch)
-    t_peb = timeit(lambda: pe_bstep(5), window) / 5
     out["pyelastica_batch_rods"] = pe_batch
-    out["pyelastica_node_steps_per_s"] = pe_batch * n / t_peb
-    print(f"PyElastica: {t_pe * 1e6:.1f} us/step single rod; {pe_batch} rods: {t_peb * 1e3:.2f} ms/step "
-          f"= {pe_batch * n / t_peb:.3e} node-steps/s")
 
-    # --- ours, eager
+    # --- ours: eager and (once compiled, untimed) compiled, single rod and batched
     sim = LGVI(rod, dt=DT, loads=Loads(gravity=GRAVITY))
     s0 = sim.initial_state()
-    state = {"s": s0}
+    sb = sim.initial_state(p=s0.p.expand(args.batch, n, 3))
+    st = {"s": s0, "b": sb, "cs": s0, "cb": sb}
+    k = args.steps_per_call
 
     def eager_step():
-        state["s"] = sim.step(state["s"])
-
-    t_eager = timeit(eager_step, window)
-    out["single_rod_eager_us_per_step"] = t_eager * 1e6
-    print(f"LGVI eager: {t_eager * 1e6:.1f} us/step single rod")
-    sb = sim.initial_state(p=s0.p.expand(args.batch, n, 3))
-    bstate = {"s": sb}
+        st["s"] = sim.step(st["s"])
 
     def eager_batch():
-        bstate["s"] = sim.step(bstate["s"])
+        st["b"] = sim.step(st["b"])
 
-    t_beager = timeit(eager_batch, window)
+    def comp_step():
+        st["cs"], _ = sim.compiled_rollout(st["cs"], n_steps=k * 10, steps_per_call=k)
+
+    def comp_batch():
+        st["cb"], _ = sim.compiled_rollout(st["cb"], n_steps=k, steps_per_call=k)
+
+    # seconds per step of each, timed in interleaved rounds (each round times every one once, in turn), so that
+    # the peer and ours see the same turns of a shared machine; the medians are reported
+    timed = {"pe": (lambda: pe_step(50), 50), "pe_batch": (lambda: pe_bstep(5), 5), "eager": (eager_step, 1),
+             "eager_batch": (eager_batch, 1)}
+    if args.compile:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for key, state in (("single", s0), ("batched", sb)):
+                c0 = time.perf_counter()
+                sim.compiled_rollout(state, n_steps=k, steps_per_call=k)
+                out[f"compile_s_{key}"] = time.perf_counter() - c0
+        timed.update(compiled=(comp_step, k * 10), compiled_batch=(comp_batch, k))
+    runs = {key: [] for key in timed}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for _ in range(args.rounds):
+            for key, (fn, steps) in timed.items():
+                runs[key].append(timeit(fn, window) / steps)
+    t = {key: median(v) for key, v in runs.items()}
+    out["rounds"] = args.rounds
+    t_pe, t_peb, t_eager, t_beager = t["pe"], t["pe_batch"], t["eager"], t["eager_batch"]
+    out["pyelastica_us_per_step"] = t_pe * 1e6
+    out["pyelastica_node_steps_per_s"] = pe_batch * n / t_peb
+    out["pyelastica_node_steps_per_s_runs"] = [pe_batch * n / x for x in runs["pe_batch"]]
+    print(f"PyElastica: {t_pe * 1e6:.1f} us/step single rod; {pe_batch} rods: {t_peb * 1e3:.2f} ms/step "
+          f"= {pe_batch * n / t_peb:.3e} node-steps/s")
+    out["single_rod_eager_us_per_step"] = t_eager * 1e6
     out["batched_eager_node_steps_per_s"] = args.batch * n / t_beager
-    print(f"LGVI eager batch {args.batch}: {t_beager * 1e3:.2f} ms/step = {args.batch * n / t_beager:.3e} node-steps/s")
+    print(f"LGVI eager: {t_eager * 1e6:.1f} us/step single rod; batch {args.batch}: {t_beager * 1e3:.2f} ms/step = "
+          f"{args.batch * n / t_beager:.3e} node-steps/s")
 
     t_single, t_batch = t_eager, t_beager
     if args.compile:
-        k = args.steps_per_call
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            c0 = time.perf_counter()
-            sim.compiled_rollout(s0, n_steps=k, steps_per_call=k)
-            out["compile_s_single"] = time.perf_counter() - c0
-            cs = {"s": s0}
-
-            def comp_step():
-                cs["s"], _ = sim.compiled_rollout(cs["s"], n_steps=k * 10, steps_per_call=k)
-
-            t_comp = timeit(comp_step, window) / (k * 10)
-            out["single_rod_compiled_us_per_step"] = t_comp * 1e6
-            print(f"LGVI compiled ({k} steps/call): {t_comp * 1e6:.1f} us/step single rod "
-                  f"(compile {out['compile_s_single']:.1f} s)")
-            c0 = time.perf_counter()
-            sim.compiled_rollout(sb, n_steps=k, steps_per_call=k)
-            out["compile_s_batched"] = time.perf_counter() - c0
-            cb = {"s": sb}
-
-            def comp_batch():
-                cb["s"], _ = sim.compiled_rollout(cb["s"], n_steps=k, steps_per_call=k)
-
-            t_cb = timeit(comp_batch, window) / k
-            out["batched_compiled_node_steps_per_s"] = args.batch * n / t_cb
-            print(f"LGVI compiled batch {args.batch}: {t_cb * 1e3:.3f} ms/step = {args.batch * n / t_cb:.3e} node-steps/s")
-            # the compiled and eager paths agree
-            e1, _ = sim.simulate(s0, n_steps=k * 10, record_every=10**9)
-            c1, _ = sim.compiled_rollout(s0, n_steps=k * 10, steps_per_call=k)
-            out["compiled_vs_eager_max_abs_m"] = float((e1.p - c1.p).abs().max())
+        t_comp, t_cb = t["compiled"], t["compiled_batch"]
+        out["single_rod_compiled_us_per_step"] = t_comp * 1e6
+        out["batched_compiled_node_steps_per_s"] = args.batch * n / t_cb
+        out["batched_compiled_node_steps_per_s_runs"] = [args.batch * n / x for x in runs["compiled_batch"]]
+        print(f"LGVI compiled ({k} steps/call): {t_comp * 1e6:.1f} us/step single rod (compile "
+              f"{out['compile_s_single']:.1f} s); batch {args.batch}: {t_cb * 1e3:.3f} ms/step = "
+              f"{args.batch * n / t_cb:.3e} node-steps/s (compile {out['compile_s_batched']:.1f} s)")
+        # the compiled and eager paths agree
+        e1, _ = sim.simulate(s0, n_steps=k * 10, record_every=10**9)
+        c1, _ = sim.compiled_rollout(s0, n_steps=k * 10, steps_per_call=k)
+        out["compiled_vs_eager_max_abs_m"] = float((e1.p - c1.p).abs().max())
         t_single, t_batch = min(t_eager, t_comp), min(t_beager, t_cb)
+    print(f"(medians of {args.rounds} interleaved rounds of {window} s each)")
 
     # --- agreement with PyElastica over 0.1 s (same discretisation size; both converge to the continuum)
     steps = int(round(0.1 / DT))
