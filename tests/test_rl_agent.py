@@ -15,6 +15,10 @@ from cmlearn.rl.agent import CheckpointError, IQNAgent, load_agent, save_agent  
 from cmlearn.rl.iqn_loss import IQNLoss, quantile_huber_loss  # noqa: E402
 from cmlearn.rl.training import AgentTrainConfig, train_agent  # noqa: E402
 
+# the unit tests build the loss alone and copy the target network by hand where they need it; training attaches
+# torchrl's HardUpdate (cmlearn.rl.training)
+pytestmark = pytest.mark.filterwarnings("ignore:No target network updater has been associated")
+
 SMALL = dict(stem_channels=4, widths=(4,), feature_dim=16, hidden_dim=16, num_cosines=8, num_policy_quantiles=8)
 
 

@@ -1035,6 +1035,7 @@ def test_fresh_validation_variants_validate_and_the_whole_dataset_trains(tiny):
         SurrogateDataModule(tiny, eta=2, horizon=4, val_dataset=fresh, inputs=torch.zeros(3, T - 1, 1))
 
 
+@pytest.mark.filterwarnings("ignore:`training_step` returned `None`", "ignore:You defined a `validation_step` but have no")
 def test_a_runaway_rollout_is_skipped_not_learned(tiny):
     """A batch whose rollout overflows (here: a huge history) must not reach the weights: the step is
     skipped and counted, every weight stays finite and equal to before."""
