@@ -78,7 +78,7 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     ``vectorize=False``: the C++ kernels as scalar loops (inductor's ``cpp.vec_isa_ok`` off), left to the C++
     compiler. For programs whose innermost dimension is a 3-vector or a 3 x 3 matrix (the LGVI's step): inductor
     vectorises that dimension with masked 16-lane vectors that use 3 of their lanes, where the compiler unrolls the
-    scalar loop; the batched LGVI step ran 2.2x faster so (``scripts/bench/lgvi.py``, ``docs/lgvi_speed.md``)."""
+    scalar loop; the batched LGVI step ran 1.9-2.1x faster so (``scripts/bench/lgvi.py``, ``docs/lgvi_speed.md``)."""
     from torch.fx.experimental.proxy_tensor import make_fx
     tensor_out = []
 
