@@ -145,7 +145,8 @@ def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):
     assert [(r["dtype"], r["batch"]) for r in res["lgvi"]] == [("float64", 1), ("float64", 4), ("float32", 1),
                                                                 ("float32", 4)]
     assert len(res["cosserat"]) == 1 and [r["batch"] for r in res["surrogate"]] == [1, 4]
-    for rows in (res["lgvi"], res["cosserat"], res["surrogate"]):
+    assert [r["batch"] for r in res["lgvi_compiled"]] == [1] and res["lgvi_compiled"][0]["cpu_compile_s"] > 0
+    for rows in (res["lgvi"], res["lgvi_compiled"], res["cosserat"], res["surrogate"]):
         for r in rows:
             assert r["ratio_dev_over_cpu"] > 0 and max(v for k, v in r.items() if k.startswith("max_abs_diff")) == 0
 

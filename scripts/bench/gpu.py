@@ -7,6 +7,10 @@ inputs, with the largest difference between the two results after the timed step
 
 - LGVI eager step, the PDMS rod with a tip magnet of Paper I Table I.6 (10 elements, 11 nodes, gravity,
   dt 9e-5 s), float64 and float32, batches of rods: node-steps per second;
+- the same rods, float64, with ``LGVI.compiled_rollout`` (four steps a program call and a finiteness and
+  Newton-residual check after each; on the CPU the scalar C++ program compiled ahead of time, on the device
+  ``torch.compile``): node-steps per second, and the seconds of the first call (the compile; ``--quick``: the
+  first batch size only);
 - the static Cosserat solve of the Paper II magnetic rod (13 nodes, eMNS-like linear field), float64,
   a batch of fields (B0 times 1-1.3, turned up to 30 deg in plane), cold start: solves per second
   (the first three batch sizes only; ``--quick``: the first);
@@ -35,7 +39,8 @@ from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
 
 DT = 9e-5
 GRAVITY = (0.0, -9.81, 0.0)
-WORKLOADS = ("lgvi", "cosserat", "surrogate")
+WORKLOADS = ("lgvi", "lgvi_compiled", "cosserat", "surrogate")
+COMPILED_STEPS = 40  # steps a timed compiled_rollout call (ten program calls of four steps)
 
 
 @dataclass
@@ -88,7 +93,8 @@ def main(argv=None):
     sides = {"cpu": torch.device("cpu"), "dev": dev}
     out = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
            "threads": torch.get_num_threads(), "torch": torch.__version__,
-           "cpu": platform.processor() or platform.machine(), "lgvi": [], "cosserat": [], "surrogate": []}
+           "cpu": platform.processor() or platform.machine(), "lgvi": [], "lgvi_compiled": [], "cosserat": [],
+           "surrogate": []}
     print(f"device {out['device']} against the CPU ({out['threads']} threads), torch {out['torch']}")
 
     # ---------------------------------------------------------------------- LGVI, PDMS rod + tip magnet
@@ -97,17 +103,22 @@ def main(argv=None):
               material=Material(E=365.12e3, density=1101.0, nu=0.5),
               magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, 0.0109)),))
     n = rod.n_nodes
+
+    def rods(dtype, batch, d):
+        """The integrator and a batch of the rod at rest, each swung sideways at its own speed."""
+        sim = LGVI(rod, dt=DT, dtype=dtype, device=d,
+                   loads=Loads(gravity=GRAVITY, field=UniformField(torch.tensor([2e-3, 0.0, 0.0]))))
+        s0 = sim.initial_state()
+        v = torch.zeros(batch, n, 3, dtype=dtype, device=d)
+        v[..., 0] = torch.linspace(-0.05, 0.05, batch, dtype=dtype, device=d)[:, None] * rod.arclength.to(
+            d, dtype) / rod.length
+        return sim, sim.initial_state(p=s0.p.expand(batch, n, 3), R=s0.R.expand(batch, n, 3, 3), v=v)
+
     for dtype in (torch.float64, torch.float32) if "lgvi" in a.workloads else ():
         for batch in batches:
             rate, ends = {}, {}
             for side, d in sides.items():
-                sim = LGVI(rod, dt=DT, dtype=dtype, device=d,
-                           loads=Loads(gravity=GRAVITY, field=UniformField(torch.tensor([2e-3, 0.0, 0.0]))))
-                s0 = sim.initial_state()
-                v = torch.zeros(batch, n, 3, dtype=dtype, device=d)
-                v[..., 0] = torch.linspace(-0.05, 0.05, batch, dtype=dtype, device=d)[:, None] * rod.arclength.to(
-                    d, dtype) / rod.length
-                st0 = sim.initial_state(p=s0.p.expand(batch, n, 3), R=s0.R.expand(batch, n, 3, 3), v=v)
+                sim, st0 = rods(dtype, batch, d)
                 st = {"s": st0}
 
                 def step():
@@ -122,6 +133,31 @@ def main(argv=None):
             out["lgvi"].append(row)
             print(f"LGVI {row['dtype']} batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} node-steps/s "
                   f"(x{row['ratio_dev_over_cpu']:.2f}); max |device - CPU| after 50 steps {diff:.1e} m")
+
+    for batch in (batches[:1] if a.quick else batches) if "lgvi_compiled" in a.workloads else ():
+        rate, ends, compile_s = {}, {}, {}
+        for side, d in sides.items():
+            sim, st0 = rods(torch.float64, batch, d)
+            t0 = time.perf_counter()
+            sim.compiled_rollout(st0, n_steps=4)
+            sync_for(d)()
+            compile_s[side] = time.perf_counter() - t0
+            st = {"s": st0}
+
+            def roll():
+                st["s"], _ = sim.compiled_rollout(st["s"], n_steps=COMPILED_STEPS)
+
+            rate[side] = batch * n * COMPILED_STEPS / timeit(roll, window, sync_for(d))
+            ends[side], _ = sim.compiled_rollout(st0, n_steps=48)
+        diff = float((ends["dev"].p.cpu() - ends["cpu"].p).abs().max())
+        row = {"dtype": "float64", "batch": batch, "nodes": n, "steps_per_call": COMPILED_STEPS,
+               "cpu_node_steps_per_s": rate["cpu"], "dev_node_steps_per_s": rate["dev"],
+               "ratio_dev_over_cpu": rate["dev"] / rate["cpu"], "cpu_compile_s": compile_s["cpu"],
+               "dev_compile_s": compile_s["dev"], "max_abs_diff_m_after_48_steps": diff}
+        out["lgvi_compiled"].append(row)
+        print(f"LGVI compiled float64 batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} node-steps/s "
+              f"(x{row['ratio_dev_over_cpu']:.2f}); compile {compile_s['cpu']:.1f} s / {compile_s['dev']:.1f} s; "
+              f"max |device - CPU| after 48 steps {diff:.1e} m")
 
     # ---------------------------------------------------------------------- static Cosserat, Paper II magnetic rod
     crod = paper2_magnetic_rod()
