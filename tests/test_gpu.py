@@ -29,59 +29,50 @@ def rel(a, b):
 
 
 # ------------------------------------------------------------------------------------------ LGVI
-def test_lgvi_batch_on_cuda_equals_cpu_with_gravity_and_a_rotating_field():
-    m, w, Bm = 0.0109, 2 * math.pi, 0.01
-    rod = pdms_rod(10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, m)),))
+ROD = pdms_rod(10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, 0.0109)),))
+
+
+def swung_rods(dev):
+    """A batch of four tip-magnet rods, each swung differently, under gravity in a field turning at 1 Hz."""
+    w, Bm = 2 * math.pi, 0.01
 
     def field(t):
         return torch.stack((Bm * torch.sin(w * t), torch.zeros_like(t), Bm * torch.cos(w * t)))
 
-    v = torch.zeros(4, rod.n_nodes, 3, dtype=D)  # a batch of four rods, each swung differently
-    v[:, :, 0] = torch.linspace(-0.02, 0.02, 4, dtype=D)[:, None] * rod.arclength / rod.length
+    v = torch.zeros(4, ROD.n_nodes, 3, dtype=D)
+    v[:, :, 0] = torch.linspace(-0.02, 0.02, 4, dtype=D)[:, None] * ROD.arclength / ROD.length
+    sim = LGVI(ROD, dt=0.8 * ROD.stable_time_step().dt_max, device=dev,
+               loads=Loads(gravity=(0.0, -9.81, 0.0), field=UniformField(field)))
+    s0 = sim.initial_state()
+    return sim, sim.initial_state(p=s0.p.expand(4, -1, -1), R=s0.R.expand(4, -1, -1, -1), v=v.to(dev))
+
+
+def test_lgvi_batch_on_cuda_equals_cpu_with_gravity_and_a_rotating_field():
     out = {}
     for side, dev in (("cpu", torch.device("cpu")), ("gpu", CUDA)):
-        sim = LGVI(rod, dt=0.8 * rod.stable_time_step().dt_max, device=dev,
-                   loads=Loads(gravity=(0.0, -9.81, 0.0), field=UniformField(field)))
-        s0 = sim.initial_state()
-        s0 = sim.initial_state(p=s0.p.expand(4, -1, -1), R=s0.R.expand(4, -1, -1, -1), v=v.to(dev))
+        sim, s0 = swung_rods(dev)
         out[side], traj = sim.simulate(s0, n_steps=400, record_every=100, record_R=True)
         assert traj.p.device.type == dev.type
     cpu, gpu = out["cpu"], out["gpu"]
-    assert float((gpu.p.cpu() - cpu.p).abs().max()) < 1e-12 * rod.length + 1e-14
+    assert float((gpu.p.cpu() - cpu.p).abs().max()) < 1e-12 * ROD.length + 1e-14
     assert float((gpu.R.cpu() - cpu.R).abs().max()) < 1e-10
-    assert float((cpu.p[:, -1] - cpu.p[:, 0]).norm(dim=-1).min()) > 0.5 * rod.length  # it moved, not a rest state
+    assert float((cpu.p[:, -1] - cpu.p[:, 0]).norm(dim=-1).min()) > 0.5 * ROD.length  # it moved, not a rest state
 
 
 def test_compiled_lgvi_rollout_on_cuda_equals_the_eager_cpu_steps():
     """``compiled_rollout`` on the device (``torch.compile``, Triton kernels; the CPU's program is the C++ one) from
     the swung batch of the test above: frames and end state equal the eager CPU steps, and no block is replayed."""
-    m, w, Bm = 0.0109, 2 * math.pi, 0.01
-    rod = pdms_rod(10, magnets=(Magnet(s=0.06055, mass=9.6e-5, moment=(0.0, 0.0, m)),))
-
-    def field(t):
-        return torch.stack((Bm * torch.sin(w * t), torch.zeros_like(t), Bm * torch.cos(w * t)))
-
-    v = torch.zeros(4, rod.n_nodes, 3, dtype=D)
-    v[:, :, 0] = torch.linspace(-0.02, 0.02, 4, dtype=D)[:, None] * rod.arclength / rod.length
-    out = {}
-    for side, dev in (("cpu", torch.device("cpu")), ("gpu", CUDA)):
-        sim = LGVI(rod, dt=0.8 * rod.stable_time_step().dt_max, device=dev,
-                   loads=Loads(gravity=(0.0, -9.81, 0.0), field=UniformField(field)))
-        s0 = sim.initial_state()
-        s0 = sim.initial_state(p=s0.p.expand(4, -1, -1), R=s0.R.expand(4, -1, -1, -1), v=v.to(dev))
-        if side == "cpu":
-            out[side] = sim.simulate(s0, n_steps=400, record_every=100)
-        else:
-            end, frames = sim.compiled_rollout(s0, n_steps=400, steps_per_call=4, record_every=25)
-            assert frames.device.type == dev.type and sim.eager_blocks == 0
-            out[side] = end, frames
-    (cpu, traj), (gpu, frames) = out["cpu"], out["gpu"]
-    assert frames.shape == traj.p.shape == (4, 5, rod.n_nodes, 3)
-    assert float((frames.cpu() - traj.p).abs().max()) < 1e-12 * rod.length
-    assert float((gpu.p.cpu() - cpu.p).abs().max()) < 1e-12 * rod.length
+    sim, s0 = swung_rods(torch.device("cpu"))
+    cpu, traj = sim.simulate(s0, n_steps=400, record_every=100)
+    sim, s0 = swung_rods(CUDA)
+    gpu, frames = sim.compiled_rollout(s0, n_steps=400, steps_per_call=4, record_every=25)
+    assert frames.device.type == CUDA.type and sim.eager_blocks == 0
+    assert frames.shape == traj.p.shape == (4, 5, ROD.n_nodes, 3)
+    assert float((frames.cpu() - traj.p).abs().max()) < 1e-12 * ROD.length
+    assert float((gpu.p.cpu() - cpu.p).abs().max()) < 1e-12 * ROD.length
     assert float((gpu.R.cpu() - cpu.R).abs().max()) < 1e-10
     assert abs(float(gpu.t) - float(cpu.t)) < 1e-12 and gpu.step == cpu.step == 400
-    assert float((cpu.p[:, -1] - cpu.p[:, 0]).norm(dim=-1).min()) > 0.5 * rod.length
+    assert float((cpu.p[:, -1] - cpu.p[:, 0]).norm(dim=-1).min()) > 0.5 * ROD.length
 
 
 def test_lgvi_float32_on_cuda_tracks_float64_and_divergence_names_the_step():
