@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import BinaryIO, Callable
 
 __all__ = ["atomic_write", "write_text_atomic", "save_torch_atomic", "CheckpointError", "weights_digest",
-           "check_weights"]
+           "header_digest", "seal", "check_digests"]
 
 
 class CheckpointError(ValueError):
@@ -29,12 +29,34 @@ def weights_digest(state_dict: dict) -> str:
     return h.hexdigest()
 
 
-def check_weights(path: str | Path, blob: dict) -> None:
-    """:class:`CheckpointError` where a checkpoint's weights differ from the digest stored with them (a corrupt
-    file whose archive still reads); checkpoints without one (written before 2026-12-02) pass."""
+_DIGESTS = ("weights_sha256", "header_sha256")
+
+
+def header_digest(blob: dict) -> str:
+    """SHA-256 of everything in a checkpoint but its weights and digests (format, configuration, metadata), as
+    key-sorted JSON (a checkpoint stores it as ``header_sha256``)."""
+    import hashlib
+    import json
+    rest = {k: v for k, v in blob.items() if k != "state_dict" and k not in _DIGESTS}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def seal(blob: dict) -> dict:
+    """``blob`` (a checkpoint's dict with its ``state_dict``) with the digests of its weights and of the rest added."""
+    return {**blob, "weights_sha256": weights_digest(blob["state_dict"]), "header_sha256": header_digest(blob)}
+
+
+def check_digests(path: str | Path, blob: dict) -> None:
+    """:class:`CheckpointError` where a checkpoint's weights, or its configuration and metadata, differ from the
+    digests stored with them (a corrupt file whose archive still reads). A checkpoint without a digest passes that
+    check: the weights' digest came on 2026-12-02, the header's on 2026-12-04."""
     want = blob.get("weights_sha256")
     if want is not None and weights_digest(blob.get("state_dict", {})) != want:
         raise CheckpointError(f"{path}: the weights do not match their stored SHA-256: the file is corrupt")
+    want = blob.get("header_sha256")
+    if want is not None and header_digest(blob) != want:
+        raise CheckpointError(f"{path}: the configuration or metadata do not match their stored SHA-256: the file "
+                              "is corrupt")
 
 
 def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:

@@ -11,6 +11,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E4
 
 from cmlearn.models.iqn import IQNConfig, IQNNetwork, find_iqn_network, make_iqn_actor  # noqa: E402
 from cmlearn.rl import Map, MagneticParticleEnv, run_episode  # noqa: E402
+from cmlearn.io import seal  # noqa: E402
 from cmlearn.rl.agent import CheckpointError, IQNAgent, load_agent, save_agent  # noqa: E402
 from cmlearn.rl.iqn_loss import IQNLoss, quantile_huber_loss  # noqa: E402
 from cmlearn.rl.training import AgentTrainConfig, train_agent  # noqa: E402
@@ -150,8 +151,8 @@ def test_checkpoint_acts_deterministically_and_bad_files_give_clear_errors(tmp_p
     assert np.array_equal(a.q_values(obs), a.q_values(obs)) and np.array_equal(a.q_values(obs), b.q_values(obs))
     assert a.act(obs, {}) == b.act(obs, {}) and a.meta["note"] == "test"
     blob = torch.load(path, weights_only=True)
-    blob["config"]["widths"] = [8]  # another architecture
-    torch.save(blob, tmp_path / "other.pt")
+    blob["config"]["widths"] = [8]  # another architecture, in a file sealed as written
+    torch.save(seal(blob), tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="architecture"):
         load_agent(tmp_path / "other.pt")
     torch.save({"format": "cmlearn-surrogate/1"}, tmp_path / "surrogate.pt")
@@ -165,7 +166,12 @@ def test_checkpoint_acts_deterministically_and_bad_files_give_clear_errors(tmp_p
     name = next(iter(blob["state_dict"]))
     blob["state_dict"][name].view(-1)[0] += 1e-6
     torch.save(blob, tmp_path / "rotten.pt")
-    with pytest.raises(CheckpointError, match="do not match their stored SHA-256"):
+    with pytest.raises(CheckpointError, match="weights do not match their stored SHA-256"):
+        load_agent(tmp_path / "rotten.pt")
+    blob = torch.load(path, weights_only=True)
+    blob["config"]["widths"] = [8]  # the same change where the archive still reads: the header's digest catches it
+    torch.save(blob, tmp_path / "rotten.pt")
+    with pytest.raises(CheckpointError, match="configuration or metadata do not match their stored SHA-256"):
         load_agent(tmp_path / "rotten.pt")
     with pytest.raises(CheckpointError, match="no such"):
         load_agent(tmp_path / "missing.pt")

@@ -443,6 +443,7 @@ def test_mirror_with_reversed_nodes_keeps_a_symmetric_loop_symmetric(tmp_path):
     blob = torch.load(tmp_path / "m.pt", weights_only=True)
     blob["config"].pop("reflections")
     blob["config"].update(mirror_axis=0, mirror_nodes=rev)
+    del blob["weights_sha256"], blob["header_sha256"]  # nor did it carry digests
     torch.save(blob, tmp_path / "old.pt")
     old, _ = load_checkpoint(tmp_path / "old.pt")
     assert old.config.reflections == ((0, tuple(rev)),) and torch.allclose(old(hist, w, ref), got, atol=1e-7)
@@ -1124,8 +1125,15 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
     blob = torch.load(path, weights_only=True)  # a weight changed where the archive still reads (bit rot)
     blob["state_dict"]["head.0.weight"].view(-1)[3] += 1e-6
     torch.save(blob, tmp_path / "rotten.pt")
-    with pytest.raises(CheckpointError, match="do not match their stored SHA-256"):
+    with pytest.raises(CheckpointError, match="weights do not match their stored SHA-256"):
         load_checkpoint(tmp_path / "rotten.pt")
+    for part, key, value in (("config", "rest_anchor", True), ("meta", "task", "ellipse")):
+        blob = torch.load(path, weights_only=True)  # a setting or the metadata changed where the archive still reads
+        assert blob[part][key] != value
+        blob[part][key] = value
+        torch.save(blob, tmp_path / "rotten.pt")
+        with pytest.raises(CheckpointError, match="configuration or metadata do not match their stored SHA-256"):
+            load_checkpoint(tmp_path / "rotten.pt")
     torch.save({"format": "something-else"}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="not a cmlearn-surrogate"):
         load_checkpoint(tmp_path / "other.pt")
@@ -1157,13 +1165,15 @@ def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
         magnetic.run_scene(get_task("semicircle").base_scene())
 
 
-def test_every_shipped_checkpoint_carries_the_digest_of_its_weights():
-    from cmlearn.io import weights_digest
+def test_every_shipped_checkpoint_carries_the_digests_of_its_weights_and_its_header():
+    from cmlearn.io import header_digest, weights_digest
     shipped = sorted((ROOT / "checkpoints").glob("*.pt"))
     assert len(shipped) >= 7
     for path in shipped:
         blob = torch.load(path, map_location="cpu", weights_only=True)
         assert blob["weights_sha256"] == weights_digest(blob["state_dict"]), path
+        assert blob["header_sha256"] == header_digest(blob), path
+        assert blob["meta"] == json.loads(path.with_suffix(".json").read_text()), path
 
 
 def test_a_runaway_rollout_is_a_divergence_error_naming_step_time_and_node():

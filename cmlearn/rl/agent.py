@@ -2,7 +2,10 @@
 
 A shipped agent checkpoint is a ``torch.save`` dict (loadable with ``weights_only=True``)::
 
-    {"format": "cmlearn-iqn-agent/1", "config": IQNConfig fields, "state_dict": {...}, "meta": {...}}
+    {"format": "cmlearn-iqn-agent/1", "config": IQNConfig fields, "state_dict": {...}, "meta": {...},
+     "weights_sha256": "...", "header_sha256": "..."}
+
+(the digests of :func:`cmlearn.io.seal`, checked on load)
 
 with a JSON copy of ``meta`` (training command, wall time, frames, evaluation) next to it.
 :meth:`IQNAgent.act` follows the ``SubController2`` protocol of :mod:`cmlearn.rl.switching`, so
@@ -27,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmlearn.io import CheckpointError, check_weights, save_torch_atomic, weights_digest, write_text_atomic
+from cmlearn.io import CheckpointError, check_digests, save_torch_atomic, seal, write_text_atomic
 from cmlearn.models.iqn import IQNConfig, IQNNetwork
 
 from .env import ACTIONS
@@ -42,8 +45,7 @@ def save_agent(path: str | Path, network: IQNNetwork, meta: dict) -> Path:
     path = Path(path)
     meta = json.loads(json.dumps(meta, default=str))
     state = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
-    blob = {"format": AGENT_FORMAT, "config": network.config.to_dict(), "state_dict": state,
-            "weights_sha256": weights_digest(state), "meta": meta}
+    blob = seal({"format": AGENT_FORMAT, "config": network.config.to_dict(), "state_dict": state, "meta": meta})
     save_torch_atomic(path, blob)
     write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2) + "\n")
     return path
@@ -62,7 +64,7 @@ def load_agent(path: str | Path) -> tuple[IQNNetwork, dict]:
     if not isinstance(blob, dict) or blob.get("format") != AGENT_FORMAT:
         got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise CheckpointError(f"{path}: not a {AGENT_FORMAT} checkpoint (format {got!r})")
-    check_weights(path, blob)
+    check_digests(path, blob)
     try:
         net = IQNNetwork(IQNConfig.from_dict(blob["config"]))
         net.load_state_dict(blob["state_dict"])

@@ -3,10 +3,10 @@
 A checkpoint is a ``torch.save`` dict::
 
     {"format": "cmlearn-surrogate/1", "model_class": "NodeLSTMSurrogate", "config": {...},
-     "state_dict": {...}, "weights_sha256": "...",
+     "state_dict": {...}, "weights_sha256": "...", "header_sha256": "...",
      "meta": {"task", "scene", "data_hash", "metrics", "command", "version", ...}}
 
-(``weights_sha256``: :func:`cmlearn.io.weights_digest` of the state dict, checked on load)
+(the digests of the weights and of everything else, :func:`cmlearn.io.seal`, checked on load)
 
 with a JSON copy of ``meta`` next to it (``<name>.json``) for humans and tools.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.io import CheckpointError, check_weights, save_torch_atomic, weights_digest, write_text_atomic
+from cmlearn.io import CheckpointError, check_digests, save_torch_atomic, seal, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
 __all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "read_blob", "load_checkpoint", "surrogate_checkpoints", "provenance"]
@@ -31,8 +31,8 @@ def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> P
     path = Path(path)
     meta = json.loads(json.dumps(meta, default=str))  # plain types only: loadable with weights_only=True
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    blob = {"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
-            "state_dict": state, "weights_sha256": weights_digest(state), "meta": meta}
+    blob = seal({"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
+                 "state_dict": state, "meta": meta})
     save_torch_atomic(path, blob)
     write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2, default=str) + "\n")
     return path
@@ -51,7 +51,7 @@ def read_blob(path: str | Path, fmt: str, task: str | None = None) -> tuple[dict
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
     if not isinstance(blob, dict) or blob.get("format") != fmt:
         raise CheckpointError(f"{path}: not a {fmt} checkpoint")
-    check_weights(path, blob)
+    check_digests(path, blob)
     meta = blob.get("meta", {})
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")

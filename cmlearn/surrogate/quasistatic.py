@@ -26,7 +26,7 @@ from cmlearn.data.quasistatic import (StaticTrack, cached_static_track, compose,
                                       static_track)
 from cmlearn.data.tasks import get_task
 from cmlearn.data.windows import split_ranges
-from cmlearn.io import CheckpointError, save_torch_atomic, weights_digest, write_text_atomic
+from cmlearn.io import CheckpointError, save_torch_atomic, seal, write_text_atomic
 from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from physics.lie import so3_exp
 
@@ -46,8 +46,7 @@ def save_quasistatic(path: str | Path, model: QuasiStaticCorrection, meta: dict)
     path = Path(path)
     meta = json.loads(json.dumps({**meta, "format": FORMAT}, default=str))
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    blob = {"format": FORMAT, "config": model.config.to_dict(), "meta": meta, "state_dict": state,
-            "weights_sha256": weights_digest(state)}
+    blob = seal({"format": FORMAT, "config": model.config.to_dict(), "meta": meta, "state_dict": state})
     save_torch_atomic(path, blob)
     write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2) + "\n")
     return path
