@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 import warnings
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from cmlearn.data import generate_dataset, get_task, load_dataset
+from cmlearn.data import data_hash, generate_dataset, get_task, load_dataset
 from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 from cmlearn.models.node_lstm import _as_shifts
@@ -65,6 +66,18 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
         load_dataset(tmp_path / "tampered.pt")
     with pytest.raises(ValueError, match="task"):
         load_dataset(tmp_path / "tampered.pt", task="ellipse")
+    # the same bytes in other shapes pass the hash, not the metadata: frames and nodes swapped, the last frame dropped
+    pos, W = tiny["positions"], tiny["wrench"]
+    for name, arr in (("positions", pos.reshape(V, N, T, 3)), ("wrench", W.reshape(V, 1, 30, 3))):
+        torch.save({**tiny, name: arr}, tmp_path / "reshaped.pt")
+        with pytest.raises(ValueError, match=rf"{name} has shape {re.escape(str(tuple(arr.shape)))}.* ask for"):
+            load_dataset(tmp_path / "reshaped.pt")
+    meta = {**tiny["meta"], "duration": 0.29, "data_hash": data_hash(pos[:, :-1], W[:, :-1])}
+    torch.save({"positions": pos[:, :-1], "wrench": W[:, :-1], "meta": meta}, tmp_path / "short.pt")
+    assert load_dataset(tmp_path / "short.pt")["positions"].shape[1] == T - 1
+    torch.save({"positions": pos[:, :-1], "wrench": W[:, :-1], "meta": {**meta, "duration": 0.3}}, tmp_path / "short.pt")
+    with pytest.raises(ValueError, match=r"positions has shape \(3, 30, "):
+        load_dataset(tmp_path / "short.pt")
 
 
 def test_training_pulses_trace_as_the_eager_batch(tiny):

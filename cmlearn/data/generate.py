@@ -227,4 +227,11 @@ def load_dataset(path: str | Path, task: str | None = None) -> dict:
         raise ValueError(f"{path}: dataset is for task {d['meta'].get('task')!r}, not {task!r}")
     if data_hash(d["positions"], d["wrench"]) != d["meta"]["data_hash"]:
         raise ValueError(f"{path}: data hash mismatch (file modified or corrupt)")
+    m = d["meta"]  # the hash covers the arrays' bytes, not their shapes: those must fit the metadata
+    T = round(m["duration"] / m["delta"]) + 1
+    for name, want in (("positions", (m["n_variants"], T, len(m["tracked"]), 3)),
+                       ("wrench", (m["n_variants"], T - 1, len(m["wrench_nodes"]), 3))):
+        if tuple(d[name].shape) != want:
+            raise ValueError(f"{path}: {name} has shape {tuple(d[name].shape)}, and its metadata (variants, duration / "
+                             f"delta, node lists) ask for {want} (file modified or corrupt)")
     return d
