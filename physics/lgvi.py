@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 import warnings
 from dataclasses import dataclass, field
 from enum import Enum
@@ -171,6 +172,11 @@ class LGVI:
             self.newton_tol = 1e-13 if self.dtype == torch.float64 else 1e-6
         if int(self.check_every) < 1:
             raise ValueError("LGVI.check_every must be >= 1")
+        for name in ("newton_max_iter", "newton_iters"):
+            n = getattr(self, name)
+            if n is not None and not (isinstance(n, numbers.Integral) and n >= 1):
+                raise ValueError(f"LGVI.{name} (Newton iterations of the rotation update) must be an integer >= 1, "
+                                 f"got {n!r}")
         self.stability_estimate = None
         if self.rod is not None and self.stability != "off":
             est = self.rod.stable_time_step()
@@ -201,8 +207,8 @@ class LGVI:
         self._free = free[:, None]
         g = self.loads.gravity
         self._gravity = None if g is None else torch.as_tensor(g, dtype=self.dtype, device=self.device)
-        if self._gravity is not None and self._gravity.shape[-1] != 3:
-            raise ValueError(f"Loads.gravity must be a 3-vector, got shape {tuple(self._gravity.shape)}")
+        if self._gravity is not None and (self._gravity.shape[-1:] != (3,) or not bool(self._gravity.isfinite().all())):
+            raise ValueError(f"Loads.gravity must be a finite 3-vector (m/s^2), got {self.loads.gravity!r}")
         self._has_magnets = self.params.magnet_elem.numel() > 0 and self.loads.field is not None
         self._compiled = {}
         self.eager_blocks = 0  # compiled_rollout: blocks of its last call stepped eagerly (a field cache refresh)
@@ -350,6 +356,9 @@ class LGVI:
         refreshed at the same steps as in the eager rollout. ``self.eager_blocks`` counts the blocks so replayed in
         the last call.
         """
+        if not all(isinstance(n, numbers.Integral) and n >= 1 for n in (steps_per_call, newton_iters)):
+            raise ValueError(f"compiled_rollout: steps_per_call and newton_iters must be integers >= 1, got "
+                             f"{steps_per_call!r} and {newton_iters!r}")
         if n_steps % steps_per_call:
             raise ValueError(f"compiled_rollout: n_steps={n_steps} must be a multiple of steps_per_call={steps_per_call}")
         field = self.loads.field if self._has_magnets and hasattr(self.loads.field, "drift") else None

@@ -371,8 +371,15 @@ def test_input_validation():
         sim.initial_state(R=2 * torch.eye(3, dtype=D).expand(5, 3, 3))
     with pytest.raises(ValueError, match="finite"):
         sim.initial_state(p=torch.full((5, 3), float("nan"), dtype=D))
-    with pytest.raises(ValueError, match="gravity"):
-        LGVI(rod, dt=1e-5, loads=Loads(gravity=(0.0, 1.0)))
+    for g in ((0.0, 1.0), (0.0, float("nan"), 0.0)):
+        with pytest.raises(ValueError, match=r"Loads.gravity must be a finite 3-vector"):
+            LGVI(rod, dt=1e-5, loads=Loads(gravity=g))
+    for bad in ({"newton_max_iter": 0}, {"newton_iters": 0}, {"newton_iters": 1.5}):
+        with pytest.raises(ValueError, match=rf"LGVI.{next(iter(bad))} .*integer >= 1"):
+            LGVI(rod, dt=1e-5, **bad)
+    for bad in ({"steps_per_call": 0}, {"newton_iters": 0}):  # refused before anything compiles
+        with pytest.raises(ValueError, match="steps_per_call and newton_iters must be integers >= 1"):
+            sim.compiled_rollout(sim.initial_state(), n_steps=4, **bad)
 
 
 @pytest.mark.slow

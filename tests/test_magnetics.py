@@ -174,6 +174,13 @@ def test_singular_distance_raises_or_is_softened():
     assert bool(torch.isfinite(B).all())
     far = torch.tensor([0.5, 0.2, 0.1], dtype=D)
     assert torch.allclose(dipole_field(far, m, softening=1e-6), dipole_field(far, m), rtol=1e-10)
+    with pytest.raises(ValueError, match="not finite"):
+        dipole_field(torch.tensor([0.1, float("nan"), 0.0], dtype=D), m)
+    with pytest.raises(ValueError, match=r"d \(displacements from the dipoles\) must have shape \(\.\.\., 3\), got \(2,\)"):
+        dipole_field(far[:2], m)
+    for kw in ({"softening": -1e-3}, {"min_distance": float("nan")}):
+        with pytest.raises(ValueError, match=f"{next(iter(kw))} must be a finite length >= 0"):
+            dipole_field(far, m, **kw)
 
 
 def test_moment_from_remanence_and_sphere_is_exact():

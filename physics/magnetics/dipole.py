@@ -63,12 +63,19 @@ def check_distances(r2: Tensor, min_distance: float, name: str = "points") -> No
         return
     bad = ~(r2 > min_distance * min_distance)
     idx = tuple(int(i) for i in bad.nonzero()[0])
+    if r2[idx].isnan():
+        raise ValueError(f"{name}: a displacement from the dipole at index {idx} is not finite (NaN)")
     raise ValueError(f"{name}: field point at distance {float(r2[idx].clamp_min(0).sqrt()):.3e} m "
                      f"(<= min_distance {min_distance:.3e} m) from a dipole at index {idx}; the point-"
                      "dipole field is singular there (move the point or pass softening=...)")
 
 
 def _r2(d: Tensor, softening: float, min_distance: float) -> Tensor:
+    if d.shape[-1:] != (3,):
+        raise ValueError(f"d (displacements from the dipoles) must have shape (..., 3), got {tuple(d.shape)}")
+    for name, length in (("softening", softening), ("min_distance", min_distance)):
+        if not (math.isfinite(length) and length >= 0):
+            raise ValueError(f"{name} must be a finite length >= 0 (m), got {length!r}")
     r2 = (d * d).sum(-1)
     if softening > 0:
         return r2 + softening * softening
