@@ -68,6 +68,9 @@ class Segment:
         object.__setattr__(self, "intrinsic_curvature", finite_vector("Segment.intrinsic_curvature",
                                                                       self.intrinsic_curvature))
         object.__setattr__(self, "intrinsic_strain", finite_vector("Segment.intrinsic_strain", self.intrinsic_strain))
+        if not self.intrinsic_strain[2] > 0:
+            raise ValueError(f"Segment.intrinsic_strain[2] (the rest stretch along the centreline) must be > 0, got "
+                             f"{self.intrinsic_strain!r}")
 
     def stiffness(self, shear_coefficient: float = 1.0) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """``(K_s, K_b)`` diagonals: (k G A, k G A, E A) and (E I1, E I2, G J)."""

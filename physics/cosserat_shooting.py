@@ -192,6 +192,9 @@ class CosseratSolver:
         self.params = rod.params(dtype, device) if params is None else params
         L, EI = rod.length, rod.bending_scale
         self.scales = (EI / L**2, EI / L)
+        if fd_step is not None and not (math.isfinite(fd_step) and fd_step > 0):
+            raise ValueError(f"fd_step (the central-difference step of the field's position derivatives, m) must be "
+                             f"finite and > 0, got {fd_step!r}")
         self.fd_step = fd_step if fd_step is not None else L * torch.finfo(dtype).eps ** (1 / 3)
         self._s = torch.tensor(rod.grid.s, dtype=dtype, device=device)
         self._sc = torch.tensor([EI / L**2] * 3 + [EI / L] * 3, dtype=dtype, device=device)
@@ -270,9 +273,10 @@ class CosseratSolver:
                     return out
             tabs = lane_tables(prm, self.rod.grid, loads, self._step_tab)
 
-            def evaluate(xx, prm, loads, field, t):
+            def lanes(xx, prm, loads, field, t):
                 return shoot_lanes(self._lane_step, xx, prm, tabs, loads, self.scales, field, t, self.fd_step,
                                    self.steps_per_call)
+            evaluate = lanes
         shp, kw = x.shape[:-1], dict(dtype=x.dtype, device=x.device)
         rt, Jt, Yt = evaluate(x, prm, loads, field, t)
         rt, Jt, Yt = rt.contiguous(), Jt.contiguous(), Yt.contiguous()
@@ -282,7 +286,7 @@ class CosseratSolver:
         act = live.clone()
         budget = its + max_iter
         tol = torch.tensor(self.tol, **kw)
-        first = True
+        first, xt = True, None
         while True:
             x, r, J, Y, rn, lam, its, act, xt = self._math(x, r, J, Y, rn, lam, act, x.clone() if first else xt,
                                                            rt, Jt, Yt, its, budget, tol, live)

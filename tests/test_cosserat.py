@@ -415,6 +415,8 @@ def test_bad_input_raises_clear_errors():
         Segment(0.0, sec, mat)
     with pytest.raises(TypeError, match="Segment.section"):
         Segment(0.1, 0.01, mat)
+    with pytest.raises(ValueError, match=r"Segment.intrinsic_strain\[2\] \(the rest stretch"):
+        Segment(0.1, sec, mat, intrinsic_strain=(0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match=r"load_points\[0\]"):
         CosseratRod.uniform(0.2, sec, mat, load_points=(0.3,))
     with pytest.raises(ValueError, match=r"magnets\[0\].s"):
@@ -437,6 +439,8 @@ def test_bad_input_raises_clear_errors():
         rod.params(youngs_modulus=torch.tensor([-1.0]))
     with pytest.raises(ValueError, match="tol"):
         CosseratSolver(rod, tol=0.0)
+    with pytest.raises(ValueError, match="fd_step .* must be finite and > 0, got -1e-06"):
+        CosseratSolver(rod, fd_step=-1e-6)
     with pytest.raises(ValueError, match="load_steps"):
         solver.solve(load_steps=0)
 
