@@ -32,30 +32,30 @@ MAGNETIC_TASKS = ("magnetic_rod", "magnetic_rod_planar")
 class Args:
     task: str = opt("magnetic_rod", "the magnetic-rod task", MAGNETIC_TASKS)
     variants: int = opt(32, "LGVI current profiles in the dataset (the printed one and random ones)")
-    seed: int = opt(0, "the dataset's seed")
-    train_seed: int = opt(0, "seeds the initial weights and the batch order")
-    eta: int = opt(2, "deviation history beyond the current frame (the LSTM's eta, >= 2)")
-    increments: int = opt(3, "static-state increments the step sees")
-    hidden: int = opt(32, "LSTM units")
-    width: int = opt(64, "dense widths")
+    seed: int = opt(0, "the dataset's seed", at_least=0)
+    train_seed: int = opt(0, "seeds the initial weights and the batch order", at_least=0)
+    eta: int = opt(2, "deviation history beyond the current frame (the LSTM's eta, >= 2)", at_least=2)
+    increments: int = opt(3, "static-state increments the step sees", at_least=1)
+    hidden: int = opt(32, "LSTM units", at_least=1)
+    width: int = opt(64, "dense widths", at_least=1)
     margin: bool = opt(False, "the network also sees the static solutions' stability margins (they fall to zero "
                               "as the rod nears a snap-through)")
-    horizon: int = opt(32, "free-running steps per training window")
-    val_horizon: int = opt(128, "free-running steps per validation window")
-    val_stride: int = opt(8, "frames between validation windows")
-    batch_size: int = opt(64, "training windows per batch")
-    train_batches: int = opt(100, "batches per epoch")
-    epochs: int = opt(30, "training epochs (cosine learning-rate schedule over them)")
-    lr: float = opt(1e-3, "Adam learning rate")
+    horizon: int = opt(32, "free-running steps per training window", at_least=1)
+    val_horizon: int = opt(128, "free-running steps per validation window", at_least=1)
+    val_stride: int = opt(8, "frames between validation windows", at_least=1)
+    batch_size: int = opt(64, "training windows per batch", at_least=1)
+    train_batches: int = opt(100, "batches per epoch", at_least=1)
+    epochs: int = opt(30, "training epochs (cosine learning-rate schedule over them)", at_least=1)
+    lr: float = opt(1e-3, "Adam learning rate (0: the weights stay)", at_least=0)
     loss: str = opt("l1", "rollout loss: mean absolute or mean squared deviation error (l2 weighs the large "
                           "errors of the snap-throughs more)", ("l1", "l2"))
-    patience: int = opt(10, "epochs without a better validation loss before stopping")
-    threads: int = opt(1, "torch CPU threads")
+    patience: int = opt(10, "epochs without a better validation loss before stopping", at_least=1)
+    threads: int = opt(1, "torch CPU threads", at_least=1)
     data_dir: str = opt("data", "where datasets and static tracks are cached")
     log_dir: str = opt("logs", "Lightning CSV logs")
     fresh: int = opt(0, "also score the model from rest on this many random profiles of --fresh-seed, never trained "
-                        "on (0: none)")
-    fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)")
+                        "on (0: none)", at_least=0)
+    fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)", at_least=0)
     out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)")
     resume: str = opt("", "a Lightning checkpoint to resume")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
@@ -67,16 +67,11 @@ class Args:
 def parse(argv=None) -> Args:
     ap = dataclass_parser(Args, __doc__.splitlines()[0])
     a = Args(**vars(ap.parse_args(argv)))
-    if a.eta < 2:
-        ap.error(f"--eta must be >= 2 (Paper II's history), got {a.eta}")
-    for name in ("increments", "horizon", "val_horizon", "val_stride", "batch_size", "train_batches", "epochs"):
-        if getattr(a, name) < 1:
-            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
     if a.variants < 3:
         ap.error(f"--variants must be >= 3 (the printed profile, training profiles and a validation one), "
                  f"got {a.variants}")
-    if a.fresh < 0 or (a.fresh and a.fresh_seed == a.seed):
-        ap.error(f"--fresh must be >= 0, its --fresh-seed other than --seed {a.seed}, got {a.fresh} and {a.fresh_seed}")
+    if a.fresh and a.fresh_seed == a.seed:
+        ap.error(f"--fresh-seed must differ from --seed {a.seed} (the --fresh profiles would be training ones)")
     if a.quick:
         a.variants, a.epochs, a.train_batches, a.horizon, a.val_horizon = 3, 2, 4, 4, 8
     return a

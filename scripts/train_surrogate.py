@@ -39,13 +39,15 @@ SELECT_METRICS = {"val_loss": "val_loss", "rollout": "val_rollout_mm"}
 @dataclass
 class Args:
     task: str = opt("semicircle", "the scene to learn", sorted(TASKS))
-    variants: int = opt(24, "LGVI trajectories generated for the dataset (random load/shape variants)")
-    seed: int = opt(0, "the dataset's seed (its random variants); also the training seed unless --train-seed")
-    train_seed: int = opt(-1, "seeds the initial weights and the batch order (-1: --seed), for runs on the same data")
-    eta: int = opt(2, "pose-history length each node's LSTM sees (the thesis's eta, >= 2)")
-    hidden: int = opt(48, "LSTM hidden size per modelled node")
+    variants: int = opt(24, "LGVI trajectories generated for the dataset (random load/shape variants)", at_least=1)
+    seed: int = opt(0, "the dataset's seed (its random variants); also the training seed unless --train-seed",
+                    at_least=0)
+    train_seed: int = opt(-1, "seeds the initial weights and the batch order (-1: --seed), for runs on the same data",
+                          at_least=-1)
+    eta: int = opt(2, "pose-history length each node's LSTM sees (the thesis's eta, >= 2)", at_least=2)
+    hidden: int = opt(48, "LSTM hidden size per modelled node", at_least=1)
     head_hidden: int = opt(64, "width of the two hidden layers of the dense head after the LSTM (with --init-from: "
-                            "at least the checkpoint's; a wider head's added units start without effect)")
+                            "at least the checkpoint's; a wider head's added units start without effect)", at_least=1)
     stencil: int = opt(1, "rings of neighbours each node sees: 1 (left, right), 2 (also their outer neighbours: a "
                           "five-node stencil, as bending needs) or 3 (seven nodes); with --init-from at least the "
                           "checkpoint's, an added ring's weights starting at zero", (1, 2, 3))
@@ -56,7 +58,7 @@ class Args:
     mix_width: int = opt(0, "with --mix: each neighbour's LSTM output reaches the head through a shared linear "
                             "projection to this many numbers (0: the whole output), a cheaper step; with --init-from "
                             "any, the checkpoint's weights on the neighbours' outputs taken to their best "
-                            "approximation of that rank (exact at its own width or more)")
+                            "approximation of that rank (exact at its own width or more)", at_least=0)
     rest_anchor: bool = opt(False, "subtract the model's output at rest: in the task's equilibrium where it names one "
                                    "(Simulation I's circle), else in the initial shape (scenes that start at rest); "
                                    "no weights, so --init-from may add it")
@@ -66,18 +68,20 @@ class Args:
                                         "--init-from may add it (no shipped model uses it: docs/surrogates.md)")
     mirror: str = opt("", "axis letters (x, y, z; e.g. zx): make the step equivariant under those reflections "
                           "of the task; no weights, so --init-from may add or drop them")
-    horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs")
-    warmup_epochs: int = opt(15, "epochs over which the rollout horizon grows linearly up to --horizon")
-    epochs: int = opt(60, "maximum number of epochs")
+    horizon: int = opt(32, "free-running steps of the training rollout loss after the warm-up epochs", at_least=1)
+    warmup_epochs: int = opt(15, "epochs over which the rollout horizon grows linearly up to --horizon", at_least=0)
+    epochs: int = opt(60, "maximum number of epochs", at_least=1)
     max_time: float = opt(0.0, "wall-time budget of the training in minutes (0: none); Lightning checks it after "
-                               "each batch and validation, then the run keeps its selected epoch and evaluates")
-    batch_size: int = opt(64, "windows per optimiser step")
-    train_batches: int = opt(0, "batches per epoch (0: all windows)")
-    lr: float = opt(3e-3, "AdamW learning rate, cosine-annealed to 5 %% of it over --epochs")
-    weight_decay: float = opt(1e-4, "AdamW weight decay")
+                               "each batch and validation, then the run keeps its selected epoch and evaluates",
+                               at_least=0)
+    batch_size: int = opt(64, "windows per optimiser step", at_least=1)
+    train_batches: int = opt(0, "batches per epoch (0: all windows)", at_least=0)
+    lr: float = opt(3e-3, "AdamW learning rate, cosine-annealed to 5 %% of it over --epochs (0: the weights stay)",
+                    at_least=0)
+    weight_decay: float = opt(1e-4, "AdamW weight decay", at_least=0)
     ema: float = opt(0.0, "decay of an exponential moving average of the weights, updated every optimiser step, "
-                          "that validation scores and the checkpoint ships (0: off; e.g. 0.995)")
-    noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale")
+                          "that validation scores and the checkpoint ships (0: off; e.g. 0.995)", at_least=0)
+    noise: float = opt(0.0, "training-noise std on the history, in units of each node's step scale", at_least=0)
     noise_shape: str = opt("walk", "the training noise in time: a random walk over the history frames (walk), or "
                                    "one shift per node and window (offset: the velocities left exact)",
                            ["walk", "offset"])
@@ -86,28 +90,31 @@ class Args:
                                      "penalises a step that dissipates energy")
     printed_repeat: int = opt(1, "the printed scene's training windows (its first 60 %%) appear this many times in "
                                  "each epoch, so that it keeps its share of the training as --variants grows (the "
-                                 "scales count it once)")
+                                 "scales count it once)", at_least=1)
     step_weighting: str = opt("uniform", "rollout-loss weights per step (inverse_square: 1/h^2)",
                               ["uniform", "inverse_square"])
     window_weighting: str = opt("uniform", "rollout-loss weights per training window (inverse_motion: 1 / (d^2 + "
                                            "floor^2), d the window's RMS displacement from the reference shape)",
                                 ["uniform", "inverse_motion"])
-    motion_floor: float = opt(1e-3, "the floor of --window-weighting inverse_motion, metres")
-    one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss")
+    motion_floor: float = opt(1e-3, "the floor of --window-weighting inverse_motion, metres", above=0)
+    one_step_weight: float = opt(0.0, "weight of a teacher-forced one-step loss term beside the rollout loss",
+                                 at_least=0)
     closed_loop: bool = opt(False, "training rollouts compute their own wrench (tasks whose custom module can; "
                                    "their validation rollout, val_rollout_mm, always does)")
-    patience: int = opt(15, "early stopping: epochs without improvement of the selection metric")
+    patience: int = opt(15, "early stopping: epochs without improvement of the selection metric", at_least=1)
     select_by: str = opt("val_loss", "checkpoint selection and early stopping (rollout: val_rollout_mm)",
                          sorted(SELECT_METRICS))
     val_fresh: int = opt(0, "validate on this many fresh variants of the scene (--val-seed, LGVI runs cached) "
-                            "instead of the dataset's last variant, which then trains (0: off)")
+                            "instead of the dataset's last variant, which then trains (0: off)", at_least=0)
     val_seed: int = opt(-1, "the fresh validation variants' seed (-1: --seed + 1)")
     val_tail: float = opt(0.0, "this fraction of the printed scene's trajectory, just before the 60 %% cut, "
-                               "validates instead of training (the thesis's protocol: --variants 1 --val-tail 0.15)")
-    val_stride: int = opt(1, "validation windows start every this many frames")
-    select_steps: int = opt(0, "steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)")
-    keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)")
-    threads: int = opt(2, "torch CPU threads")
+                               "validates instead of training (the thesis's protocol: --variants 1 --val-tail 0.15)",
+                               at_least=0)
+    val_stride: int = opt(1, "validation windows start every this many frames", at_least=1)
+    select_steps: int = opt(0, "steps of the validation rollout behind val_rollout_mm (0: the whole trajectory)",
+                            at_least=0)
+    keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)", at_least=-1)
+    threads: int = opt(2, "torch CPU threads", at_least=1)
     data_dir: str = opt("data", "where datasets and the LGVI runs of the evaluated scenes are generated and cached")
     compile_data: bool = opt(False, "generate a missing dataset with the LGVI's compiled rollout (its program compiled "
                                     "ahead of time; equal to the eager LGVI to round-off; not for the magnetic rod)")
@@ -122,9 +129,9 @@ class Args:
                            ["cpu", "gpu", "auto"])
     ddp: bool = opt(False, "multi-process data parallel (Lightning's DDP strategy) over --devices; --batch-size "
                           "and --train-batches are per process, and only the first process evaluates and writes")
-    devices: int = opt(1, "processes / devices for --ddp")
+    devices: int = opt(1, "processes / devices for --ddp", at_least=1)
     quick: bool = opt(False, "smoke-test budget: a short scene, at most 3 variants, two epochs")
-    duration: float = opt(0.0, "simulated seconds per trajectory (0: the scene's own)")
+    duration: float = opt(0.0, "simulated seconds per trajectory (0: the scene's own)", at_least=0)
 
 
 def parse(argv=None) -> Args:
@@ -134,11 +141,7 @@ def parse(argv=None) -> Args:
         get_task(a.task).reflections(a.mirror)
     except ValueError as e:
         ap.error(f"--mirror must name task {a.task!r}'s reflections: {e}")
-    if a.printed_repeat < 1:
-        ap.error(f"--printed-repeat must be >= 1, got {a.printed_repeat}")
-    if a.val_fresh < 0 or a.val_stride < 1:
-        ap.error(f"--val-fresh must be >= 0 and --val-stride >= 1, got {a.val_fresh} and {a.val_stride}")
-    if not 0.0 <= a.val_tail < 0.6:
+    if not a.val_tail < 0.6:
         ap.error(f"--val-tail must lie in [0, 0.6) of the trajectory (the printed scene's cut), got {a.val_tail}")
     if a.val_tail and a.val_fresh:
         ap.error("--val-tail and --val-fresh exclude each other: validate on the printed scene's tail or on fresh "
@@ -150,15 +153,11 @@ def parse(argv=None) -> Args:
         a.val_seed = a.seed + 1
     if a.val_fresh and a.val_seed == a.seed:
         ap.error(f"--val-seed must differ from --seed {a.seed}: the fresh variants would be the training ones")
-    if a.hidden < 1 or a.head_hidden < 1:
-        ap.error(f"--hidden and --head-hidden must be >= 1, got {a.hidden} and {a.head_hidden}")
     if a.mix_width and not (a.mix and 1 <= a.mix_width <= a.hidden):
         ap.error(f"--mix-width must be 0, or in 1..--hidden ({a.hidden}) with --mix 1 or 2, got {a.mix_width} with "
                  f"--mix {a.mix}")
-    if not 0.0 <= a.ema < 1.0:
+    if not a.ema < 1.0:
         ap.error(f"--ema must lie in [0, 1) (0: off), got {a.ema}")
-    if a.max_time < 0:
-        ap.error(f"--max-time must be >= 0 minutes, got {a.max_time}")
     if a.time_reversal:
         task = get_task(a.task)
         rod = task.base_scene().rod
@@ -167,8 +166,6 @@ def parse(argv=None) -> Args:
                      "rod's own state)")
     if a.chord_projection and get_task(a.task).custom:
         ap.error(f"--chord-projection: task {a.task!r} tracks points that are not a chain along the rod (markers)")
-    if a.train_seed < -1:
-        ap.error(f"--train-seed must be >= 0 (or -1: --seed), got {a.train_seed}")
     if a.resume and not a.ema and Path(a.resume).is_file() and \
             "current_model_state" in torch.load(a.resume, map_location="cpu", weights_only=False):
         ap.error(f"--resume: {a.resume} comes from a run with --ema (its state_dict holds the averaged weights, "
@@ -178,7 +175,7 @@ def parse(argv=None) -> Args:
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
-    if a.devices < 1 or (a.devices > 1 and not a.ddp):
+    if a.devices > 1 and not a.ddp:
         ap.error(f"--devices must be 1, or more with --ddp (one training process each), got {a.devices}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs
         a.variants, a.epochs, a.warmup_epochs, a.horizon = min(a.variants, 3), min(a.epochs, 2), 1, min(a.horizon, 4)

@@ -185,8 +185,11 @@ def test_train_quasistatic_quick_writes_a_loadable_hybrid(tmp_path, capsys):
     assert again["val_loss_start"] != pytest.approx(meta["val_loss_start"], rel=1e-5)  # not the untrained network's
     script_fails([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--init-from", "q.pt", "--hidden", "16",
                   "--out", "q3.pt"], tmp_path, "--init-from q.pt: its hidden differ")
-    for extra, msg in ((["--eta", "1"], "--eta must be >= 2"), (["--fresh", "2", "--fresh-seed", "0"], "--fresh"),
-                       (["--variants", "2"], "--variants must be >= 3"), (["--horizon", "0"], "--horizon must be >= 1")):
+    for extra, msg in ((["--eta", "1"], "argument --eta: must be >= 2, got '1'"),
+                       (["--fresh", "2", "--fresh-seed", "0"], "--fresh-seed must differ from --seed 0"),
+                       (["--variants", "2"], "--variants must be >= 3"), (["--horizon", "0"], "--horizon: must be >= 1"),
+                       (["--lr", "-0.1"], "argument --lr: must be >= 0, got '-0.1'"),
+                       (["--threads", "0"], "argument --threads: must be >= 1, got '0'")):
         parse_fails("train_quasistatic", extra, msg, capsys)
 
 
@@ -351,18 +354,22 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
     for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
                        (["--keep-scales"], "--keep-scales needs --init-from"),
-                       (["--printed-repeat", "0"], "--printed-repeat must be >= 1, got 0"),
+                       (["--printed-repeat", "0"], "argument --printed-repeat: must be >= 1, got '0'"),
                        (["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
                        (["--task", "rod"], "argument --task: invalid choice: 'rod'"),
-                       (["--max-time", "-1"], "--max-time must be >= 0 minutes"),
-                       (["--head-hidden", "0"], "--hidden and --head-hidden must be >= 1, got 48 and 0"),
+                       (["--max-time", "-1"], "argument --max-time: must be >= 0, got '-1'"),
+                       (["--head-hidden", "0"], "argument --head-hidden: must be >= 1, got '0'"),
+                       (["--epochs", "0"], "argument --epochs: must be >= 1, got '0'"),
+                       (["--lr", "-1"], "argument --lr: must be >= 0, got '-1'"),
+                       (["--noise", "nan"], "argument --noise: must be finite, got 'nan'"),
+                       (["--horizon", "two"], "argument --horizon: must be an integer, got 'two'"),
                        (["--mix-width", "8"], "--mix-width must be 0, or in 1..--hidden (48) with --mix 1 or 2"),
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude"),
                        (["--variants", "1"], "--variants 1 leaves no variant to validate on"),
                        (["--devices", "2"], "--devices must be 1, or more with --ddp"),
-                       (["--ddp", "--devices", "0"], "--devices must be 1, or more with --ddp"),
+                       (["--ddp", "--devices", "0"], "argument --devices: must be >= 1, got '0'"),
                        (["--task", "magnetic_rod", "--time-reversal"],
                         "--time-reversal: task 'magnetic_rod' is not time-reversible"),
                        (["--task", "magnetic_rod", "--chord-projection"],
