@@ -81,8 +81,12 @@ def test_errt_reports_failure_on_a_sealed_map():
     path = planner.plan((0.1, 0.1), (0.9, 0.9), wall)
     assert path is not None and len(path) > 2 and path_ok(path, wall)
     assert planner.plan((0.45, 0.3), (0.9, 0.9), wall) is None  # a start inside an obstacle
-    with pytest.raises(ValueError, match="bounds"):
-        ERRT((1, 0, 0, 1))
+    for bounds in ((1, 0, 0, 1), ((0, 1), (0, 1))):
+        with pytest.raises(ValueError, match=r"bounds must be \(xmin, ymin, xmax, ymax\)"):
+            ERRT(bounds)
+    for kw in ({"margin": -0.01}, {"cache_size": -1}):
+        with pytest.raises(ValueError, match="margin .* and cache_size .* must be >= 0"):
+            ERRT((0, 0, 1, 1), **kw)
 
 
 def test_feedback_gain_and_nominal_convergence():

@@ -41,13 +41,18 @@ def segment_hits(a, b, rects: np.ndarray, margin: float = 0.0) -> bool:
 class ERRT:
     def __init__(self, bounds, step: float = 0.02, p_goal: float = 0.1, p_waypoint: float = 0.5,
                  cache_size: int = 100, max_nodes: int = 3000, margin: float = 0.0, seed: int = 0):
-        self.bounds = tuple(float(v) for v in bounds)
+        try:
+            self.bounds = tuple(float(v) for v in bounds)
+        except (TypeError, ValueError):
+            self.bounds = ()
         if len(self.bounds) != 4 or not (self.bounds[0] < self.bounds[2] and self.bounds[1] < self.bounds[3]):
             raise ValueError(f"bounds must be (xmin, ymin, xmax, ymax) with min < max, got {bounds!r}")
         if not (0 <= p_goal and 0 <= p_waypoint and p_goal + p_waypoint <= 1):
             raise ValueError(f"need p_goal, p_waypoint >= 0 and p_goal + p_waypoint <= 1, got {p_goal}, {p_waypoint}")
         if not (step > 0 and max_nodes >= 1):
             raise ValueError(f"step must be > 0 and max_nodes >= 1, got {step}, {max_nodes}")
+        if not (margin >= 0 and cache_size >= 0):
+            raise ValueError(f"margin (m) and cache_size (waypoints) must be >= 0, got {margin}, {cache_size}")
         self.step, self.p_goal, self.p_waypoint = step, p_goal, p_waypoint
         self.cache_size, self.max_nodes, self.margin = cache_size, max_nodes, margin
         self.rng = np.random.default_rng(seed)
