@@ -1169,6 +1169,12 @@ def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
         engine.step(hist[:, :, :5], wrench, ref)
     with pytest.raises(ValueError, match="ref must be"):
         engine.stepper(hist, ref[0])
+    with pytest.raises(ValueError, match=r"hist must be torch.float32 \(the model's dtype\), got torch.float64"):
+        engine.step(hist.double(), wrench, ref)
+    with pytest.raises(ValueError, match=r"wrench must be torch.float32 .*, got torch.float64"):
+        engine.step(hist, wrench.double(), ref)
+    with pytest.raises(ValueError, match="scene_wrench: n_steps must be an integer >= 0, got -1"):
+        engine.scene_wrench(get_task("semicircle").base_scene(), -1)
     with pytest.raises(ValueError, match="duration must be a positive time"):
         engine.run_scene(get_task("semicircle").base_scene(), duration=-1.0)
     with pytest.raises(ValueError, match="n must be >= 1"):

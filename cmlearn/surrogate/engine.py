@@ -60,7 +60,8 @@ def check_scene(task: SurrogateTask, scene) -> None:
 
 def check_inputs(model, eta: int, hist: Tensor, ref: Tensor, wrench: Tensor | None = None) -> None:
     """ValueError naming the first of a step's inputs whose shape is not the model's: the history (B, eta+1,
-    n_tracked, 3), the reference shape (B, n_tracked, 3) and the modelled nodes' forces (B, K, 3)."""
+    n_tracked, 3), the reference shape (B, n_tracked, 3) and the modelled nodes' forces (B, K, 3); then the first
+    whose dtype is not the model's."""
     N, K = model.config.n_tracked, model.idx_modeled.numel()
     B = hist.shape[0] if hist.ndim else "B"
     for name, x, dims, shape in (("hist", hist, "(B, eta + 1, n_tracked, 3)", (B, eta + 1, N, 3)),
@@ -68,6 +69,10 @@ def check_inputs(model, eta: int, hist: Tensor, ref: Tensor, wrench: Tensor | No
                                  ("wrench", wrench, "(B, K modelled nodes, 3)", (B, K, 3))):
         if x is not None and tuple(x.shape) != shape:
             raise ValueError(f"{name} must be {dims} = {shape}, got {tuple(x.shape)}")
+    want = next(model.parameters()).dtype
+    for name, x in (("hist", hist), ("ref", ref), ("wrench", wrench)):
+        if x is not None and x.dtype != want:
+            raise ValueError(f"{name} must be {want} (the model's dtype), got {x.dtype}")
 
 
 class SurrogateDivergence(RuntimeError):
@@ -210,6 +215,8 @@ class Surrogate:
 
     def scene_wrench(self, scene, n_steps: int) -> Tensor:
         """Node forces (n_steps, K, 3) at the interval midpoints, as in the training data."""
+        if not (isinstance(n_steps, int) and n_steps >= 0):
+            raise ValueError(f"scene_wrench: n_steps must be an integer >= 0, got {n_steps!r}")
         W = torch.zeros(n_steps, len(self.task.wrench_nodes), 3, dtype=torch.float32)
         force, idx, d = scene.loads.force, list(self.task.wrench_nodes), self.task.delta
         if force is not None and idx:
