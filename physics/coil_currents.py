@@ -156,6 +156,9 @@ class CoilField:
     def __init__(self, emns, currents, tol: float = 2e-4):
         if not (math.isfinite(tol) and tol > 0):
             raise ValueError(f"tol must be > 0 m, got {tol!r}")
+        if not callable(currents):
+            raise TypeError(f"currents must be a function of time returning the coil currents (C,) or (..., C), got "
+                            f"{type(currents).__name__}")
         self.emns, self.currents, self.tol = emns, currents, float(tol)
         self._clear()
         self.refreshes = 0

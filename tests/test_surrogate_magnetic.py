@@ -313,6 +313,8 @@ def test_profiles_and_rod_validate_their_input():
         SinusoidCurrents(torch.ones(2, 6), (0.1, -0.1), torch.zeros(2, 6))
     with pytest.raises(ValueError, match="tol"):
         CoilField(eMNS(), lambda t: torch.zeros(6), tol=0.0)
+    with pytest.raises(TypeError, match="currents must be a function of time .* got Tensor"):
+        CoilField(eMNS(), torch.zeros(6))
     with pytest.raises(ValueError, match="rigid_factor"):
         replace(get_scene("magnetic_rod").rod, rigid_factor=0.5)
     p = MinJerkCurrents(torch.tensor([[0.0] * 6, [1.0] * 6]), (2.0,), (1.0, 1.0))
