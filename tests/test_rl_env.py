@@ -307,5 +307,10 @@ def test_bad_inputs(tmp_path):
     env.step(np.int64(0))
     with pytest.raises(TypeError, match="unknown EnvConfig"):
         MagneticParticleEnv(colour="red")
+    for kw, msg in (({"map_size": (0.4, 0.0)}, "map_size must be two finite lengths > 0"),
+                    ({"obstacle_threshold": 300.0}, r"obstacle_threshold .* must be in \[0, 255\]"),
+                    ({"min_start_goal_distance": -0.1}, "min_start_goal_distance must be finite and >= 0")):
+        with pytest.raises(ValueError, match=msg):
+            MagneticParticleEnv(**kw)
     with pytest.raises(ValueError, match="probability"):
         DisturbanceConfig(probability=2.0)

@@ -118,6 +118,13 @@ class EnvConfig:
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
         if int(self.max_steps) < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if len(self.map_size) != 2 or not all(math.isfinite(v) and v > 0 for v in self.map_size):
+            raise ValueError(f"map_size must be two finite lengths > 0 (m), got {self.map_size!r}")
+        if not 0 <= self.obstacle_threshold <= 255:
+            raise ValueError(f"obstacle_threshold (a grey level: a darker view is an obstacle; 0: the rule off) must "
+                             f"be in [0, 255], got {self.obstacle_threshold}")
+        if not (math.isfinite(self.min_start_goal_distance) and self.min_start_goal_distance >= 0):
+            raise ValueError(f"min_start_goal_distance must be finite and >= 0 (m), got {self.min_start_goal_distance}")
         if not (0 < self.obstacle_window <= self.camera.size):
             raise ValueError(f"obstacle_window must be in [1, {self.camera.size}], got {self.obstacle_window}")
         if not (isinstance(self.waypoint_lookahead, int) and self.waypoint_lookahead >= 0):
