@@ -57,6 +57,8 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
     assert torch.allclose(tiny["wrench"][0, :, 0], torch.tensor([0.0, -0.02, 0.0]))
     mid = task.tracked.index(50)
     assert float(tiny["positions"][0, -1, mid, 1] - tiny["positions"][0, 0, mid, 1]) < -1e-4  # pushed down
+    with pytest.raises(ValueError, match="n_variants must be an integer >= 1"):
+        generate_dataset("semicircle", 0, seed=1, out=tmp_path / "none.pt", duration=0.3)
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a dataset")
     with pytest.raises(ValueError, match="not a readable"):
