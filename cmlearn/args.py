@@ -29,7 +29,6 @@ def _typed(kind, at_least, above):
         if above is not None and not value > above:
             raise argparse.ArgumentTypeError(f"must be > {above}, got {text!r}")
         return value
-    convert.__name__ = kind.__name__  # argparse names the type in its own messages
     return convert
 
 

@@ -2,6 +2,8 @@
 error every checkpoint loader raises."""
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -18,8 +20,6 @@ class CheckpointError(ValueError):
 
 def weights_digest(state_dict: dict) -> str:
     """SHA-256 of a state dict's names, dtypes, shapes and values (a checkpoint stores it as ``weights_sha256``)."""
-    import hashlib
-
     import torch
     h = hashlib.sha256()
     for k in sorted(state_dict):
@@ -35,8 +35,6 @@ _DIGESTS = ("weights_sha256", "header_sha256")
 def header_digest(blob: dict) -> str:
     """SHA-256 of everything in a checkpoint but its weights and digests (format, configuration, metadata), as
     key-sorted JSON (a checkpoint stores it as ``header_sha256``)."""
-    import hashlib
-    import json
     rest = {k: v for k, v in blob.items() if k != "state_dict" and k not in _DIGESTS}
     return hashlib.sha256(json.dumps(rest, sort_keys=True, default=str).encode()).hexdigest()
 
