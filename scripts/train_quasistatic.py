@@ -40,6 +40,9 @@ class Args:
     width: int = opt(64, "dense widths", at_least=1)
     margin: bool = opt(False, "the network also sees the static solutions' stability margins (they fall to zero "
                               "as the rod nears a snap-through)")
+    fold_clock: float = opt(0.0, "with --margin: the network also sees the frames since the static track last "
+                                 "jumped over a fold (the fold's time within its frame from the margins before it), "
+                                 "capped at this many (0: off)", at_least=0)
     horizon: int = opt(32, "free-running steps per training window", at_least=1)
     val_horizon: int = opt(128, "free-running steps per validation window", at_least=1)
     val_stride: int = opt(8, "frames between validation windows", at_least=1)
@@ -59,7 +62,7 @@ class Args:
     out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)")
     resume: str = opt("", "a Lightning checkpoint to resume")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
-                             "--increments, --hidden, --width and --margin must match, --eta may differ (the LSTM "
+                             "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may differ (the LSTM "
                              "reads any history); the linear part is fitted anew")
     quick: bool = opt(False, "smoke-test budget: 3 profiles of 1 s, two epochs of 4 batches, no evaluation")
 
@@ -72,6 +75,8 @@ def parse(argv=None) -> Args:
                  f"got {a.variants}")
     if a.fresh and a.fresh_seed == a.seed:
         ap.error(f"--fresh-seed must differ from --seed {a.seed} (the --fresh profiles would be training ones)")
+    if a.fold_clock and not a.margin:
+        ap.error("--fold-clock needs --margin (the clock is read from the margins before a fold)")
     if a.quick:
         a.variants, a.epochs, a.train_batches, a.horizon, a.val_horizon = 3, 2, 4, 4, 8
     return a
@@ -83,6 +88,7 @@ def main(argv=None):
     from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
+    from cmlearn.data.quasistatic import with_fold_clock
     from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
     from cmlearn.surrogate.quasistatic import (QuasiStaticSurrogate, evaluate_quasistatic, fresh_scores,
                                               rest_rotations, save_quasistatic, short_check, static_tracks)
@@ -102,12 +108,14 @@ def main(argv=None):
               f"it trains on frames 0-{k - 1} only")
     cfg = QuasiStaticConfig(eta=a.eta, increments=a.increments, hidden=a.hidden, width=a.width,
                             rest_state=tuple(s[0, 0, :12].tolist()), margin=a.margin, rest_margin=float(s[0, 0, 12]),
-                            **fit_scales(s, d, ranges["train"]))
+                            fold_clock=a.fold_clock, **fit_scales(s, d, ranges["train"]))
+    if a.fold_clock:
+        s = with_fold_clock(s, a.fold_clock)
     model = QuasiStaticCorrection(cfg)
     residual = model.fit_linear(d, s, ranges["train"])
     if a.init_from:
         src = QuasiStaticSurrogate.load(a.init_from, task=task.name).model
-        differ = [k for k in ("increments", "hidden", "width", "margin") if getattr(src.config, k) != getattr(cfg, k)]
+        differ = [k for k in ("increments", "hidden", "width", "margin", "fold_clock") if getattr(src.config, k) != getattr(cfg, k)]
         if differ:
             raise SystemExit(f"--init-from {a.init_from}: its {', '.join(differ)} differ from this run's")
         model.load_state_dict({k: v for k, v in src.state_dict().items() if k.split(".")[0] in ("lstm", "dense", "head")},

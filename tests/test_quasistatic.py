@@ -212,6 +212,46 @@ def test_the_margin_option_reads_the_thirteenth_column_and_keeps_the_rest_anchor
         QuasiStaticConfig(margin_scale=0.0)
 
 
+def test_the_fold_clock_restarts_at_a_jump_from_the_margins_before_it_and_the_option_reads_a_fourteenth_column():
+    from cmlearn.data.quasistatic import fold_clock, with_fold_clock
+    s = torch.zeros(2, 12, 13, dtype=torch.float64)
+    s[..., 12] = torch.tensor([1.0, 1.0, 0.9, 0.5, 0.3, 0.8, 0.9, 1.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64)
+    s[0, 5:, 7] = 30.0  # profile 0: the distal magnet turns by 30 deg between frames 4 and 5
+    s[1, 5:, 7] = 9.0  # profile 1: by less than a fold's jump
+    tau = fold_clock(s, 5.0)
+    # the squared margin falls 0.25 -> 0.09 from frame 3 to 4: zero at 4 + 0.09 / 0.16 = 4.5625
+    want = [5.0] * 5 + [0.4375, 1.4375, 2.4375, 3.4375, 4.4375, 5.0, 5.0]
+    torch.testing.assert_close(tau[0], torch.tensor(want, dtype=torch.float64))
+    assert bool((tau[1] == 5.0).all())
+    s[0, 3, 12] = 0.2  # margins that do not fall before the jump: the fold halfway through the frame
+    assert float(fold_clock(s, 5.0)[0, 5]) == 0.5
+    s[0, 8:, 7] = float("nan")  # a track that ended: no jump, the clock counts on
+    assert fold_clock(s, 5.0)[0, 8:].tolist() == [3.5, 4.5, 5.0, 5.0]
+    assert with_fold_clock(s, 5.0).shape == (2, 12, 14)
+    with pytest.raises(ValueError, match="cap"):
+        fold_clock(s, 0.0)
+    # the model reads the clock of frame k+1 (the 14th column), and at its cap at rest it stays at rest
+    torch.manual_seed(0)
+    cfg = QuasiStaticConfig(eta=2, increments=3, hidden=8, width=16, margin=True, margin_scale=0.3, rest_margin=0.7,
+                            rest_state=tuple(torch.randn(12).tolist()), fold_clock=5.0)
+    model = QuasiStaticCorrection(cfg)
+    for p in model.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    rest = torch.tensor(cfg.rest_state + (cfg.rest_margin, 5.0)).expand(1, 4, 14).clone()
+    assert model(torch.zeros(1, 3, 12), rest).abs().max() == 0
+    after = rest.clone()
+    after[:, :-1, 13] = 0.0  # the older frames' clocks are not read
+    assert model(torch.zeros(1, 3, 12), after).abs().max() == 0
+    after[:, -1, 13] = 0.5  # half a frame after a fold
+    assert model(torch.zeros(1, 3, 12), after).abs().max() > 1e-3
+    with pytest.raises(ValueError, match=r"static must be \(1, 4, 14\)"):
+        model(torch.zeros(1, 3, 12), rest[..., :13])
+    with pytest.raises(ValueError, match="fold_clock needs margin"):
+        QuasiStaticConfig(fold_clock=5.0)
+    with pytest.raises(ValueError, match="fold_clock must be"):
+        QuasiStaticConfig(margin=True, fold_clock=-1.0)
+
+
 def test_a_warm_step_too_far_is_split_in_time_a_fold_restarts_its_problem_cold_and_a_failure_names_it():
     import cmlearn.data.quasistatic as q
     from physics.cosserat_shooting import StaticSolution
@@ -367,6 +407,37 @@ def test_the_staged_solve_crosses_a_snap_through_onto_the_branch_the_escalation_
     assert bool(staged.converged) and (staged.p - escalated.p).abs().max() < 1e-9
     turned = (staged.R[st.nodes] - before[0].R[st.nodes]).abs().max()
     assert turned > 0.1 and (escalated.R - staged.R).abs().max() < 1e-9
+
+
+def test_the_stepper_counts_the_fold_clock_as_the_offline_rollout_does_through_a_snap_through():
+    """A model that reads the fold clock (random weights): the real-time stepper, which counts the clock frame by frame
+    inside its frame program, follows the offline rollout (the clock of the whole static track) through the held-out
+    profile's first snap-through (frame 108) and two frames after it."""
+    from dataclasses import replace
+    from physics.programs import compile_program
+    torch.set_num_threads(1)
+    torch.manual_seed(1)
+    shipped = QuasiStaticSurrogate.load(SHIPPED, task="magnetic_rod").model.config
+    cfg = replace(shipped, hidden=8, width=16, fold_clock=4.0)
+    model = QuasiStaticCorrection(cfg)
+    for p in model.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    engine = QuasiStaticSurrogate(model, {"task": "magnetic_rod"})
+    scene = replace(engine.task.scene_by_name("magnetic_rod_heldout"), duration=2.2)
+    cp, Rp = engine.run(scene)[:2]
+    st = engine.stepper(scene)
+    for k in range(1, 111):
+        c, R = st.step(scene.loads.field.currents(torch.tensor(0.02 * k, dtype=torch.float64)))
+    assert (c - cp[-1]).abs().max() < 1e-8 and orientation_errors(R[None], Rp[-1:]).abs().max() < 1e-4  # m, deg
+    tau = st.static[0, :, 13]  # frames 107-110: the cap, then 1 - (the fold's time within frame 107-108), +1, +2
+    assert float(tau[0]) == 4.0 and 0.0 < float(tau[1]) < 1.0 and torch.allclose(tau[1:] - tau[1], torch.arange(3.0))
+    # the clock changes the step: the same frame with the clock still at its cap
+    args = (st.solution.y.contiguous(), st.solution.jacobian.contiguous(), st.dev, st.static)
+    capped = st.static.clone()
+    capped[0, -1, 13] = 4.0
+    assert (st._frame(*args[:3], capped)[0] - st._frame(*args)[0]).abs().max() > 1e-3
+    for a, b in zip(compile_program(st._frame, args, direct=True)(*args), st._frame(*args)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
 
 
 def test_a_cached_static_track_is_served_only_for_the_same_times_clamp_truncation_and_physics(tmp_path, monkeypatch):

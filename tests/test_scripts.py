@@ -185,11 +185,18 @@ def test_train_quasistatic_quick_writes_a_loadable_hybrid(tmp_path, capsys):
     assert again["val_loss_start"] != pytest.approx(meta["val_loss_start"], rel=1e-5)  # not the untrained network's
     script_fails([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--init-from", "q.pt", "--hidden", "16",
                   "--out", "q3.pt"], tmp_path, "--init-from q.pt: its hidden differ")
+    # with the fold clock: the checkpoint records it and its network reads it (a 14th static column)
+    run_script([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--margin", "--fold-clock", "20", "--out",
+                "q4.pt", "--log-dir", "logs"], tmp_path)
+    clocked = QuasiStaticSurrogate.load(tmp_path / "q4.pt", task="magnetic_rod").model
+    assert clocked.config.fold_clock == 20.0 and clocked.dense[0].in_features == 12 * 3 + 12 + 4 + 1
     for extra, msg in ((["--eta", "1"], "argument --eta: must be >= 2, got '1'"),
                        (["--fresh", "2", "--fresh-seed", "0"], "--fresh-seed must differ from --seed 0"),
                        (["--variants", "2"], "--variants must be >= 3"), (["--horizon", "0"], "--horizon: must be >= 1"),
                        (["--lr", "-0.1"], "argument --lr: must be >= 0, got '-0.1'"),
-                       (["--threads", "0"], "argument --threads: must be >= 1, got '0'")):
+                       (["--threads", "0"], "argument --threads: must be >= 1, got '0'"),
+                       (["--fold-clock", "20"], "--fold-clock needs --margin"),
+                       (["--margin", "--fold-clock", "-1"], "argument --fold-clock: must be >= 0, got '-1'")):
         parse_fails("train_quasistatic", extra, msg, capsys)
 
 

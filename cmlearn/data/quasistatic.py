@@ -11,7 +11,9 @@ Coordinates (12 per frame, two magnets in :data:`~cmlearn.surrogate.magnetic.MAG
 
 * static state ``s``: the two magnet centres (mm) and the rotation vectors (deg) of the magnets' rotations
   relative to their rotations at rest (the static rod at zero current), and as a 13th column the solution's
-  stability margin (:func:`stability_margin`), which tells a snap-through coming;
+  stability margin (:func:`stability_margin`), which tells a snap-through coming, and where a model asks for it
+  (``QuasiStaticConfig.fold_clock``) as a 14th column the fold clock (:func:`fold_clock`), which tells how long ago
+  the last one began;
 * deviation ``d``: the LGVI's block centres minus the static ones (mm) and the rotation vectors (deg) of
   ``R_lgvi R_static^T`` (world frame), so that :func:`compose` rebuilds the LGVI's magnets from ``s`` and ``d``.
 """
@@ -31,10 +33,14 @@ from cmlearn.io import save_torch_atomic
 from physics.errors import SolverError
 from physics.lie import so3_exp, so3_log
 
-__all__ = ["N_COORDS", "field_hook", "TabulatedField", "StaticTrack", "stability_margin", "static_track",
-           "static_state", "deviation", "compose", "cached_static_track"]
+__all__ = ["N_COORDS", "FOLD_JUMP_DEG", "field_hook", "TabulatedField", "StaticTrack", "stability_margin",
+           "static_track", "static_state", "fold_clock_step", "fold_clock", "with_fold_clock", "deviation", "compose",
+           "cached_static_track"]
 
 N_COORDS = 12
+#: A static track whose magnet rotation changes by more than this (deg) within one frame has jumped over a fold
+#: (the tracks' snap-throughs jump 45-57 deg a frame; elsewhere at most about 4).
+FOLD_JUMP_DEG = 10.0
 _DEG = 180.0 / math.pi
 
 
@@ -166,6 +172,34 @@ def static_state(P: Tensor, R: Tensor, R_rest: Tensor, margin: Tensor | None = N
     rot = so3_log(R @ R_rest.to(R).transpose(-1, -2)) * _DEG
     cols = [(P * 1e3).flatten(-2), rot.flatten(-2)] + ([] if margin is None else [margin[..., None].to(P)])
     return torch.cat(cols, -1)
+
+
+def fold_clock_step(tau: Tensor, prev: Tensor, s: Tensor, margin_before: Tensor, cap: float) -> Tensor:
+    """The fold clock (...,) of a frame with static state ``s`` (..., 13) after a frame with ``prev`` (..., 13) and
+    clock ``tau``; ``margin_before``: the stability margin of the frame before ``prev``. Where the track jumps over a
+    fold between the two frames (a magnet turns by more than :data:`FOLD_JUMP_DEG`), the clock restarts at the time
+    since the fold, which lies where the squared margin, linear in the load near a fold, extrapolates from the two
+    frames before to zero (halfway where they do not fall); otherwise it counts on by one frame, up to ``cap``."""
+    jump = (s[..., 6:12] - prev[..., 6:12]).abs().amax(-1) > FOLD_JUMP_DEG  # (NaN, a track that ended: no jump)
+    a, b = margin_before.square(), prev[..., 12].square()
+    frac = torch.where(a > b, (b / (a - b).clamp(min=1e-30)).clamp(max=1.0), torch.full_like(a, 0.5))
+    return torch.where(jump, 1.0 - frac, (tau + 1.0).clamp(max=cap))
+
+
+def fold_clock(s: Tensor, cap: float) -> Tensor:
+    """Frames (..., T) since the static track ``s`` (..., T, 13) last jumped over a fold, counted from the fold's
+    estimated time within its frame (:func:`fold_clock_step`), at most ``cap`` (also before the first fold)."""
+    if not cap > 0:
+        raise ValueError(f"cap must be a positive number of frames, got {cap}")
+    tau = [s.new_full(s.shape[:-2], float(cap))]
+    for j in range(1, s.shape[-2]):
+        tau.append(fold_clock_step(tau[-1], s[..., j - 1, :], s[..., j, :], s[..., max(j - 2, 0), 12], cap))
+    return torch.stack(tau, -1)
+
+
+def with_fold_clock(s: Tensor, cap: float) -> Tensor:
+    """Static states ``s`` (..., T, 13) with :func:`fold_clock` as a 14th column."""
+    return torch.cat([s, fold_clock(s, cap)[..., None]], -1)
 
 
 def deviation(c: Tensor, R: Tensor, P: Tensor, Rs: Tensor) -> Tensor:

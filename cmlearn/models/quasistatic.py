@@ -10,7 +10,9 @@ The step, from the deviations of frames k-eta..k and the static states of frames
 ``L`` is a linear map fitted by least squares (:meth:`QuasiStaticCorrection.fit_linear`: the rod's linear
 response, a damped lag behind the moving equilibrium) and kept fixed; ``f`` is Paper II's node network on
 these inputs (input I, the deviation history, through an LSTM; input II, the static increments and state,
-through a dense layer, with ``margin`` also the static solutions' stability margins of frames k+1-n..k+1;
+through a dense layer, with ``margin`` also the static solutions' stability margins of frames k+1-n..k+1, and with
+``fold_clock`` the frames since the static track last jumped over a fold at frame k+1
+(:func:`~cmlearn.data.quasistatic.fold_clock`, at most ``fold_clock`` frames);
 concatenated; a dense head), less its output at rest (so that a rod at rest stays
 there exactly), zero at initialisation and trained on free-running rollouts
 (:mod:`cmlearn.surrogate.quasistatic_training`). Without ``L`` the same network ran away on the held-out
@@ -19,6 +21,7 @@ quasi-static hybrid for the magnetic rod").
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -43,6 +46,7 @@ class QuasiStaticConfig:
     margin: bool = False  # the network also sees the static solutions' stability margins (a 13th static column)
     margin_scale: float = 1.0
     rest_margin: float = 0.0  # the margin at rest
+    fold_clock: float = 0.0  # > 0: the network also sees the fold clock of frame k+1, capped at this many frames
 
     def __post_init__(self):
         for name, lo in (("eta", 0), ("increments", 1), ("hidden", 1), ("width", 1)):
@@ -58,21 +62,27 @@ class QuasiStaticConfig:
             setattr(self, name, v)
         if not self.margin_scale > 0:
             raise ValueError(f"margin_scale must be positive, got {self.margin_scale}")
+        if not (self.fold_clock >= 0 and math.isfinite(self.fold_clock)):
+            raise ValueError(f"fold_clock must be a finite number of frames >= 0 (0: off), got {self.fold_clock}")
+        if self.fold_clock and not self.margin:
+            raise ValueError("fold_clock needs margin: the clock is read from the margins before a fold")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 class QuasiStaticCorrection(nn.Module):
-    """The step above; ``forward(dev, static)``: ``dev`` (B, eta+1, 12) and ``static`` (B, increments+1, 12 or
-    13), each oldest first, ``static`` ending at frame k+1 (its 13th column the stability margins, which the
-    network reads where ``config.margin``); returns ``d(k+1)`` (B, 12)."""
+    """The step above; ``forward(dev, static)``: ``dev`` (B, eta+1, 12) and ``static`` (B, increments+1, 12, 13
+    or 14), each oldest first, ``static`` ending at frame k+1 (its 13th column the stability margins, which the
+    network reads where ``config.margin``, its 14th the fold clock, read where ``config.fold_clock``); returns
+    ``d(k+1)`` (B, 12)."""
 
     def __init__(self, config: QuasiStaticConfig):
         super().__init__()
         self.config = c = config
         self.lstm = nn.LSTM(N, c.hidden, batch_first=True)
-        self.dense = nn.Sequential(nn.Linear(N * c.increments + N + (c.increments + 1) * c.margin, c.width), nn.Tanh())
+        n_in = N * c.increments + N + (c.increments + 1) * c.margin + (c.fold_clock > 0)
+        self.dense = nn.Sequential(nn.Linear(n_in, c.width), nn.Tanh())
         self.head = nn.Sequential(nn.Linear(c.hidden + c.width, c.width), nn.Tanh(), nn.Linear(c.width, N))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
@@ -93,17 +103,21 @@ class QuasiStaticCorrection(nn.Module):
         c = self.config
         if dev.dim() != 3 or dev.shape[1:] != (c.eta + 1, N):
             raise ValueError(f"dev must be (B, {c.eta + 1}, {N}), got {tuple(dev.shape)}")
-        cols = (N + 1,) if c.margin else (N, N + 1)  # a margin column is there or not, unless the network reads it
+        # a margin (clock) column is there or not, unless the network reads it
+        cols = (N + 2,) if c.fold_clock else (N + 1, N + 2) if c.margin else (N, N + 1, N + 2)
         if static.dim() != 3 or static.shape[1] != c.increments + 1 or static.shape[2] not in cols or \
                 static.shape[0] != dev.shape[0]:
             raise ValueError(f"static must be ({dev.shape[0]}, {c.increments + 1}, {' or '.join(map(str, cols))}), "
                              f"got {tuple(static.shape)}")
 
-    def _network(self, dev: Tensor, inc: Tensor, state: Tensor, margins: Tensor | None) -> Tensor:
+    def _network(self, dev: Tensor, inc: Tensor, state: Tensor, margins: Tensor | None,
+                 clock: Tensor | None = None) -> Tensor:
         h = self.lstm(dev / self.dev_scale)[0][:, -1]
         x = [(inc / self.inc_scale).flatten(1), (state - self.state_mean) / self.state_scale]
         if margins is not None:
             x.append(margins / self.config.margin_scale)
+        if clock is not None:
+            x.append(clock[:, None] / self.config.fold_clock)
         return self.head(torch.cat([h, self.dense(torch.cat(x, -1))], -1)) * self.dev_scale
 
     def rest_output(self) -> Tensor:
@@ -112,7 +126,8 @@ class QuasiStaticCorrection(nn.Module):
         c = self.config
         z = self.rest_state.new_zeros
         margins = z(1, c.increments + 1) + c.rest_margin if c.margin else None
-        return self._network(z(1, c.eta + 1, N), z(1, c.increments, N), self.rest_state[None], margins)
+        clock = z(1) + c.fold_clock if c.fold_clock else None  # no fold for as long as the clock counts
+        return self._network(z(1, c.eta + 1, N), z(1, c.increments, N), self.rest_state[None], margins, clock)
 
     def forward(self, dev: Tensor, static: Tensor, rest: Tensor | None = None) -> Tensor:
         """``rest``: :meth:`rest_output` (computed here when not given)."""
@@ -120,13 +135,14 @@ class QuasiStaticCorrection(nn.Module):
         s = static[..., :N]
         linear = self.regressors(dev, static) @ self.linear
         margins = static[..., N] if self.config.margin else None
+        clock = static[:, -1, N + 1] if self.config.fold_clock else None
         # the rest anchor: at rest the step is exactly zero
         rest = self.rest_output() if rest is None else rest
-        return linear + self._network(dev, s[:, 1:] - s[:, :-1], s[:, -1], margins) - rest
+        return linear + self._network(dev, s[:, 1:] - s[:, :-1], s[:, -1], margins, clock) - rest
 
     def rollout(self, dev: Tensor, static: Tensor) -> Tensor:
         """Free-running deviations (B, H, 12) after the history ``dev`` (B, eta+1, 12) ending at frame k0, along
-        the static states ``static`` (B, H + increments, 12 or 13) of frames k0+1-increments .. k0+H."""
+        the static states ``static`` (B, H + increments, 12, 13 or 14) of frames k0+1-increments .. k0+H."""
         n = self.config.increments
         H = static.shape[1] - n
         if H < 1:

@@ -23,7 +23,7 @@ from torch import Tensor
 from cmlearn.data.generate import cached_dataset, dataset_path, reference_rollout
 from cmlearn.data.magnetic import magnet_frames
 from cmlearn.data.quasistatic import (StaticTrack, cached_static_track, compose, deviation, static_state,
-                                      static_track)
+                                      static_track, with_fold_clock)
 from cmlearn.data.tasks import get_task
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import CheckpointError, save_torch_atomic, seal, write_text_atomic
@@ -84,8 +84,11 @@ def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | 
 def rollout_from(model: QuasiStaticCorrection, s: Tensor, d: Tensor, start: int) -> Tensor:
     """Free-running deviations (..., T-1-start, 12) of frames start+1 .. T-1 from static states ``s`` and the
     true deviations ``d`` (..., T, 12) up to frame ``start`` (float32 inside); a history reaching before frame 0
-    repeats frame 0 (from rest)."""
+    repeats frame 0 (from rest). A model that reads the fold clock gets it (:func:`with_fold_clock`) where ``s``
+    (..., T, 13) has none, counted from its first frame."""
     c = model.config
+    if c.fold_clock and s.shape[-1] == 13:
+        s = with_fold_clock(s, c.fold_clock)
     lead = max(c.eta, c.increments - 1)
     batch = s.shape[:-2]
     s, d = s.reshape(-1, *s.shape[-2:]).float(), d.reshape(-1, *d.shape[-2:]).float()

@@ -34,8 +34,8 @@ import math
 import torch
 from torch import Tensor
 
-from cmlearn.data.quasistatic import (_HALVINGS, TabulatedField, _warm_step, compose, field_hook, stability_margin,
-                                      static_state)
+from cmlearn.data.quasistatic import (_HALVINGS, TabulatedField, _warm_step, compose, field_hook, fold_clock_step,
+                                      stability_margin, static_state)
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 from physics.cosserat_ode import quat_matrix
 from physics.cosserat_shooting import StaticSolution
@@ -105,8 +105,12 @@ class QuasiStaticStepper:
         return I
 
     def _state(self, sol) -> Tensor:
+        """The static state (1, 1, 13) of a solution at rest (with the fold clock at its cap, where the model reads
+        it: 14 columns)."""
         P, R = sol.p[..., self.nodes, :], sol.R[..., self.nodes, :, :]
-        return static_state(P, R, self.rest, stability_margin(sol)).float()[None, None]
+        s = static_state(P, R, self.rest, stability_margin(sol)).float()[None, None]
+        cap = self.model.config.fold_clock
+        return torch.cat([s, s.new_full((1, 1, 1), cap)], -1) if cap else s
 
     # ---------------------------------------------------------------------------------------------- a step
     def solve(self, currents) -> StaticSolution:
@@ -168,6 +172,10 @@ class QuasiStaticStepper:
         q = y[:, 3:7]
         P, R = y[:, 0:3], quat_matrix(q / q.norm(dim=-1, keepdim=True))
         s = static_state(P, R, self.rest, stability_margin(jacobian)).float()[None, None]
+        cap = self.model.config.fold_clock
+        if cap:  # the clock of this frame from the last two frames' (cmlearn.data.quasistatic.fold_clock_step)
+            tau = fold_clock_step(static[:, -1, 13], static[:, -1], s[:, 0], static[:, -2, 12], cap)
+            s = torch.cat([s, tau[:, None, None]], -1)
         static = torch.cat([static[:, 1:], s], 1)
         d = self.model(dev, static, self._rest_out)
         c, Rm = compose(d[0], P, R)
