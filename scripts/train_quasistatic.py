@@ -62,8 +62,8 @@ class Args:
     out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)")
     resume: str = opt("", "a Lightning checkpoint to resume")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
-                             "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may differ (the LSTM "
-                             "reads any history); the linear part is fitted anew")
+                             "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may "
+                             "differ (the LSTM reads any history); the linear part is fitted anew")
     quick: bool = opt(False, "smoke-test budget: 3 profiles of 1 s, two epochs of 4 batches, no evaluation")
 
 
@@ -115,7 +115,8 @@ def main(argv=None):
     residual = model.fit_linear(d, s, ranges["train"])
     if a.init_from:
         src = QuasiStaticSurrogate.load(a.init_from, task=task.name).model
-        differ = [k for k in ("increments", "hidden", "width", "margin", "fold_clock") if getattr(src.config, k) != getattr(cfg, k)]
+        differ = [k for k in ("increments", "hidden", "width", "margin", "fold_clock")
+                  if getattr(src.config, k) != getattr(cfg, k)]
         if differ:
             raise SystemExit(f"--init-from {a.init_from}: its {', '.join(differ)} differ from this run's")
         model.load_state_dict({k: v for k, v in src.state_dict().items() if k.split(".")[0] in ("lstm", "dense", "head")},

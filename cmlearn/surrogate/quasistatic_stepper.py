@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from cmlearn.data.quasistatic import (_HALVINGS, TabulatedField, _warm_step, compose, field_hook, fold_clock_step,
-                                      stability_margin, static_state)
+                                      stability_margin, static_state, with_fold_clock)
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 from physics.cosserat_ode import quat_matrix
 from physics.cosserat_shooting import StaticSolution
@@ -110,7 +110,7 @@ class QuasiStaticStepper:
         P, R = sol.p[..., self.nodes, :], sol.R[..., self.nodes, :, :]
         s = static_state(P, R, self.rest, stability_margin(sol)).float()[None, None]
         cap = self.model.config.fold_clock
-        return torch.cat([s, s.new_full((1, 1, 1), cap)], -1) if cap else s
+        return with_fold_clock(s, cap) if cap else s
 
     # ---------------------------------------------------------------------------------------------- a step
     def solve(self, currents) -> StaticSolution:
