@@ -223,6 +223,36 @@ def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():
     assert swing > 1e-4 and float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
 
 
+
+def test_quasistatic_hybrid_rollout_with_a_fold_clock_on_cuda_equals_cpu():
+    """The magnetic rod's hybrid along the held-out profile's static track (solved once on the CPU) through its first
+    snap-through (frame 108): the shipped correction, and a model that reads the fold clock (random weights), run from
+    rest on both devices; the clock itself, counted on the device, equals the CPU's."""
+    from cmlearn.data.quasistatic import fold_clock, static_state
+    from cmlearn.models.quasistatic import QuasiStaticCorrection
+    from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, rollout_from, scene_track
+
+    engine = QuasiStaticSurrogate.load(ROOT / "checkpoints" / "magnetic_rod_quasistatic.pt", task="magnetic_rod")
+    scene = replace(engine.task.scene_by_name("magnetic_rod_heldout"), duration=2.3)
+    track = scene_track(engine.task, scene, 116)
+    s = static_state(track.P, track.R, engine.rest, track.margin)
+    d = torch.zeros(s.shape[0], 12, dtype=D)
+    tau = {side: fold_clock(s.to(dev), 6.0) for side, dev in (("cpu", torch.device("cpu")), ("gpu", CUDA))}
+    assert tau["gpu"].device.type == CUDA.type and torch.allclose(tau["gpu"].cpu(), tau["cpu"], atol=1e-12)
+    assert float(tau["cpu"][100]) == 6.0 and float(tau["cpu"][110]) < 6.0  # the clock restarted at the fold
+    torch.manual_seed(1)
+    clocked = QuasiStaticCorrection(replace(engine.model.config, hidden=8, width=16, fold_clock=6.0,
+                                            margin=True)).eval()
+    for p in clocked.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    for model in (engine.model, clocked):
+        cpu = rollout_from(model, s, d, 0)
+        gpu = rollout_from(model.to(CUDA), s.to(CUDA), d.to(CUDA), 0)
+        model.cpu()
+        swing = float(cpu.abs().max())
+        assert gpu.device.type == CUDA.type and swing > 0.1
+        assert float((gpu.cpu() - cpu).abs().max()) < 1e-4 * swing + 1e-6
+
 # the magnetic rod selects its epochs in closed loop: its wrench model runs on the GPU too (before 2026-11-29 the
 # node forces came back on the CPU and the run stopped at its first validation)
 @pytest.mark.parametrize("task, flags", [("semicircle", ["--rest-anchor", "--mirror", "zx"]),
