@@ -1,12 +1,13 @@
 """Command-line options of the training scripts declared once, as a dataclass: each field's default, type,
-``--help`` text, choices and bounds make its flag (``--train-seed`` for ``train_seed``; a ``bool`` field a switch)."""
+``--help`` text, choices and bounds make its flag (``--train-seed`` for ``train_seed``; a ``bool`` field a switch).
+:func:`bounded` is the same checked number type for the scripts' plain argparse options."""
 from __future__ import annotations
 
 import argparse
 import math
 from dataclasses import field, fields
 
-__all__ = ["opt", "dataclass_parser"]
+__all__ = ["opt", "dataclass_parser", "bounded"]
 
 
 def opt(default, help: str, choices=None, at_least=None, above=None):
@@ -15,8 +16,9 @@ def opt(default, help: str, choices=None, at_least=None, above=None):
     return field(default=default, metadata={"help": help, "choices": choices, "at_least": at_least, "above": above})
 
 
-def _typed(kind, at_least, above):
-    """The argparse ``type`` of a field: ``kind`` of the text, finite for a float, within the bounds."""
+def bounded(kind, at_least=None, above=None):
+    """An argparse ``type``: ``kind`` (int or float) of the text, finite for a float, within the bounds
+    (``at_least`` inclusive, ``above`` exclusive); otherwise argparse's error naming the flag."""
     def convert(text: str):
         try:
             value = kind(text)
@@ -42,6 +44,6 @@ def dataclass_parser(cls, description: str) -> argparse.ArgumentParser:
             continue
         kind = type(f.default)
         if kind in (int, float):
-            kind = _typed(kind, meta.get("at_least"), meta.get("above"))
+            kind = bounded(kind, meta.get("at_least"), meta.get("above"))
         ap.add_argument(flag, type=kind, default=f.default, help=meta["help"], choices=meta["choices"])
     return ap

@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 import warnings
 from pathlib import Path
 
+from .args import bounded
 from .io import atomic_write
 
 __all__ = ["main", "build_parser", "run_scene"]
@@ -33,19 +33,6 @@ __all__ = ["main", "build_parser", "run_scene"]
 DEFAULT_SCENE = "pdms_tip_magnet"  # 2 s simulated in roughly 10-20 s of wall time on 2 CPU cores
 _FRAMES = 1000  # default number of recorded frames
 
-
-def _positive_float(text: str) -> float:
-    v = float(text)
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite positive number, got {text!r}")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,11 +48,11 @@ def build_parser() -> argparse.ArgumentParser:
                                        "variational integrator, print run-time and accuracy diagnostics and "
                                        "write plots and a JSON summary.")
     p_sim.add_argument("--scene", default=DEFAULT_SCENE, help=f"scene name (default {DEFAULT_SCENE})")
-    p_sim.add_argument("--duration", type=_positive_float, default=None,
+    p_sim.add_argument("--duration", type=bounded(float, above=0), default=None,
                        help="simulated seconds (default: the scene's duration)")
     p_sim.add_argument("--out", type=Path, default=None, help="output folder (default ./out/simulate_<scene>)")
     p_sim.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="floating-point type")
-    p_sim.add_argument("--record-every", type=_positive_int, default=None,
+    p_sim.add_argument("--record-every", type=bounded(int, at_least=1), default=None,
                        help=f"record every K-th step (default: about {_FRAMES} frames)")
     p_sim.set_defaults(func=_cmd_simulate)
     from .compare import DEFAULT_COMPARE_SCENE
@@ -74,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                                        "per-axis errors, RMSE(t), wall times and the speed-up; write plots.")
     p_cmp.add_argument("--scene", default=DEFAULT_COMPARE_SCENE, help=f"scene (default {DEFAULT_COMPARE_SCENE})")
     p_cmp.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default checkpoints/<task>.pt)")
-    p_cmp.add_argument("--duration", type=_positive_float, default=None, help="simulated seconds")
+    p_cmp.add_argument("--duration", type=bounded(float, above=0), default=None, help="simulated seconds")
     p_cmp.add_argument("--out", type=Path, default=None, help="output folder (default ./out/compare_<scene>)")
     p_cmp.add_argument("--compile", action="store_true",
                        help="compile the surrogate's step and the LGVI ahead of time (tens of seconds each, timed "

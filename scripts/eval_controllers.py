@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmlearn.args import bounded
+
 
 @dataclass
 class Args:
@@ -62,7 +64,8 @@ def parse(argv=None) -> Args:
         if f.type == "bool":
             ap.add_argument(flag, dest=f.name, action="store_true")
         else:
-            ap.add_argument(flag, dest=f.name, type={"int": int, "float": float}.get(f.type, str), default=f.default)
+            kind = {"int": bounded(int), "float": bounded(float)}.get(f.type, str)
+            ap.add_argument(flag, dest=f.name, type=kind, default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
     if a.quick:
         a.episodes, a.train_maps, a.unseen_maps, a.plots = min(a.episodes, 4), min(a.train_maps, 2), \

@@ -21,6 +21,7 @@ import json
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -36,16 +37,16 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt) of one task")
-    ap.add_argument("--seed", type=int, default=2, help="the fresh variants' seed (not one a checkpoint was trained "
+    ap.add_argument("--seed", type=bounded(int, at_least=0), default=2,
+                    help="the fresh variants' seed (not one a checkpoint was trained "
                     "or selected on: train_surrogate's defaults are 0 and, with --val-fresh, 1)")
-    ap.add_argument("--variants", type=int, default=4, help="fresh trajectories to rank on")
+    ap.add_argument("--variants", type=bounded(int, at_least=1), default=4, help="fresh trajectories to rank on")
     ap.add_argument("--data-dir", default="data", help="where the fresh variants' LGVI runs are cached")
-    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's own)")
-    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="simulated seconds (0: the scene's own)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=2, help="torch CPU threads")
     ap.add_argument("--out", default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
-    if a.variants < 1:
-        ap.error(f"--variants must be >= 1, got {a.variants}")
     torch.set_num_threads(a.threads)
     loaded = [(path, *load_checkpoint(path)) for path in a.checkpoints]
     tasks = {meta["task"] for _, _, meta in loaded}

@@ -31,6 +31,7 @@ import time
 import torch
 from torch.utils.data import default_collate
 
+from cmlearn.args import bounded
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
@@ -43,40 +44,36 @@ def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoint", help="the surrogate checkpoint (.pt) to refine")
-    ap.add_argument("--variants", type=int, default=96, help="variants of the checkpoint's training data")
-    ap.add_argument("--seed", type=int, default=0, help="the data's seed")
+    ap.add_argument("--variants", type=bounded(int, at_least=1), default=96,
+                    help="variants of the checkpoint's training data")
+    ap.add_argument("--seed", type=bounded(int, at_least=0), default=0, help="the data's seed")
     ap.add_argument("--data-dir", default="data", help="where the LGVI runs are cached")
-    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's own)")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="simulated seconds (0: the scene's own)")
     ap.add_argument("--keep-scales", action="store_true", help="accept data other than the checkpoint's own")
-    ap.add_argument("--windows", type=int, default=1024, help="fixed training windows the loss sums over")
-    ap.add_argument("--window-seed", type=int, default=1, help="seed of the windows' draw")
-    ap.add_argument("--printed-weight", type=float, default=1.0,
+    ap.add_argument("--windows", type=bounded(int, at_least=1), default=1024,
+                    help="fixed training windows the loss sums over")
+    ap.add_argument("--window-seed", type=bounded(int, at_least=0), default=1, help="seed of the windows' draw")
+    ap.add_argument("--printed-weight", type=bounded(float, above=0), default=1.0,
                     help="weight of each printed-scene window in the loss's mean (the others weigh 1)")
-    ap.add_argument("--node-weight", type=float, default=1.0,
+    ap.add_argument("--node-weight", type=bounded(float, above=0), default=1.0,
                     help="weight of the printed scene's node of interest in the loss's mean over the modelled nodes "
                          "(the others weigh 1)")
-    ap.add_argument("--horizon", type=int, default=96, help="rollout steps of each window")
-    ap.add_argument("--max-evals", type=int, default=200, help="loss evaluations at most")
-    ap.add_argument("--history", type=int, default=20, help="L-BFGS history size")
-    ap.add_argument("--chunk", type=int, default=128, help="windows per forward and backward pass")
-    ap.add_argument("--max-time", type=float, default=0.0, help="minutes of refinement at most (0: no limit)")
-    ap.add_argument("--val-seed", type=int, default=None,
+    ap.add_argument("--horizon", type=bounded(int, at_least=1), default=96, help="rollout steps of each window")
+    ap.add_argument("--max-evals", type=bounded(int, at_least=1), default=200, help="loss evaluations at most")
+    ap.add_argument("--history", type=bounded(int, at_least=1), default=20, help="L-BFGS history size")
+    ap.add_argument("--chunk", type=bounded(int, at_least=1), default=128, help="windows per forward and backward pass")
+    ap.add_argument("--max-time", type=bounded(float, at_least=0), default=0.0,
+                    help="minutes of refinement at most (0: no limit)")
+    ap.add_argument("--val-seed", type=bounded(int, at_least=0), default=None,
                     help="select the weights by the fresh variants of this seed (default: by the loss)")
-    ap.add_argument("--val-variants", type=int, default=16, help="fresh variants --val-seed draws")
-    ap.add_argument("--val-every", type=int, default=5, help="score the fresh variants at every n-th evaluation")
+    ap.add_argument("--val-variants", type=bounded(int, at_least=1), default=16, help="fresh variants --val-seed draws")
+    ap.add_argument("--val-every", type=bounded(int, at_least=1), default=5,
+                    help="score the fresh variants at every n-th evaluation")
     ap.add_argument("--device", default="cpu", help="torch device of the refinement (cpu, cuda, cuda:1, ...)")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
     ap.add_argument("--out", required=True, help="the refined checkpoint (.pt)")
     a = ap.parse_args(argv)
-    for name in ("variants", "windows", "horizon", "max_evals", "history", "chunk", "threads", "val_variants",
-                 "val_every"):
-        if getattr(a, name) < 1:
-            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
-    if a.max_time < 0 or a.duration < 0:
-        ap.error("--max-time and --duration must be >= 0")
-    for name in ("printed_weight", "node_weight"):
-        if not getattr(a, name) > 0:
-            ap.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(a, name)}")
     if a.val_seed is not None and a.val_seed == a.seed:
         ap.error(f"--val-seed {a.val_seed} is the data's --seed: its variants are trained on")
     try:

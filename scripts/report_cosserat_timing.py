@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
 
 THESIS_HZ = (8.33, 50.0)
@@ -83,8 +84,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer cases and repetitions (smoke test)")
     ap.add_argument("--no-compile", dest="compile", action="store_false")
-    ap.add_argument("--reps", type=int, default=None)
-    ap.add_argument("--threads", type=int, default=Args.threads)
+    ap.add_argument("--reps", type=bounded(int, at_least=1), default=None)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=Args.threads)
     ap.add_argument("--out", default=Args.out)
     args = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(args.threads)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import dataset_path, get_task, load_dataset
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
@@ -69,7 +70,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", help="the checkpoint train_surrogate.py wrote (its .json names the log folder)")
     ap.add_argument("--data-dir", default="data")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.io import write_text_atomic
 from physics.magnetics import CoilFieldTable, six_coil_emns
 
@@ -95,7 +96,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default="docs/field_table.md")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     a = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(a.threads)
     if a.quick:

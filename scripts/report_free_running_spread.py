@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data.magnetic import magnet_frames, rollout
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate.engine import load_checkpoints
@@ -52,19 +53,16 @@ def lgvi_spread(task, scene, pts, eps: list[float]) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoints", nargs="+", default=["checkpoints/magnetic_rod.pt"])
-    ap.add_argument("--starts", type=int, default=16)
-    ap.add_argument("--sigmas", type=float, nargs="+", default=[1e-8, 1e-6])
-    ap.add_argument("--lgvi-eps", type=float, nargs="*", default=[1e-6, 1e-3],
+    ap.add_argument("--starts", type=bounded(int, at_least=1), default=16)
+    ap.add_argument("--sigmas", type=bounded(float, at_least=0), nargs="+", default=[1e-8, 1e-6])
+    ap.add_argument("--lgvi-eps", type=bounded(float, at_least=0), nargs="*", default=[1e-6, 1e-3],
                     help="relative current changes for the LGVI's own spread (none: skip it)")
-    ap.add_argument("--duration", type=float, default=0.0, help="shorter than the profiles (tests)")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="shorter than the profiles (tests)")
     ap.add_argument("--data-dir", default="data", help="where the LGVI reference runs are cached")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", default="")
     a = ap.parse_args(argv)
-    if a.starts < 1:
-        ap.error(f"--starts must be >= 1, got {a.starts}")
-    if any(not s >= 0 for s in a.sigmas):
-        ap.error(f"--sigmas must be >= 0 m, got {a.sigmas}")
     torch.set_num_threads(a.threads)
     try:
         engines, task = load_checkpoints(a.checkpoints, magnetic=True)

@@ -24,6 +24,7 @@ from statistics import median
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task, reference_rollout
 from cmlearn.io import write_text_atomic
@@ -64,16 +65,15 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--task", default="magnetic_rod", choices=("magnetic_rod", "magnetic_rod_planar"))
     ap.add_argument("--scene", default="", help="one of the task's scenes (default: its first held-out one)")
-    ap.add_argument("--tols", type=float, nargs="+", default=[1e-10, 1e-8, 1e-6, 1e-4],
+    ap.add_argument("--tols", type=bounded(float, above=0), nargs="+", default=[1e-10, 1e-8, 1e-6, 1e-4],
                     help="the static solve's tolerances; the first is the reference")
-    ap.add_argument("--duration", type=float, default=0.0, help="seconds of the scene (default all of it)")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="seconds of the scene (default all of it)")
     ap.add_argument("--eager", action="store_true", help="the eager stepper (the exact coil model) instead")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--data-dir", default="data", help="where the LGVI's run is cached")
     ap.add_argument("--out", default="", help="markdown file for the table")
     a = ap.parse_args(argv)
-    if a.threads < 1 or a.duration < 0 or any(not t > 0 for t in a.tols):
-        raise SystemExit("--threads must be >= 1, --duration >= 0 and every --tols > 0")
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
     scene = task.scene_by_name(a.scene or task.heldout[0])

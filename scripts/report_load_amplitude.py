@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data.generate import scene_rollout
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
@@ -42,9 +43,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoints", nargs="+", default=["checkpoints/semicircle.pt", "checkpoints/semicircle_fast.pt"])
     ap.add_argument("--scene", default="", help="a scene of the checkpoints' task (default: its first held-out scene)")
-    ap.add_argument("--scales", type=float, nargs="+", default=[0.25, 0.5, 1.0, 1.5])
-    ap.add_argument("--duration", type=float, default=0.0, help="shorter than the scene (tests)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--scales", type=bounded(float), nargs="+", default=[0.25, 0.5, 1.0, 1.5])
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0, help="shorter than the scene (tests)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", default="")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)

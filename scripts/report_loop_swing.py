@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -82,17 +83,16 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoints", nargs="*", default=[str(ROOT / "checkpoints" / "ellipse.pt")])
-    ap.add_argument("--variants", type=int, default=32, help="training loops (the dataset of seed 0 with this many)")
-    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the scene's 50 s)")
-    ap.add_argument("--after", type=float, default=10.0, help="seconds left out before the range and mean")
+    ap.add_argument("--variants", type=bounded(int, at_least=1), default=32,
+                    help="training loops (the dataset of seed 0 with this many)")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="simulated seconds (0: the scene's 50 s)")
+    ap.add_argument("--after", type=bounded(float, at_least=0), default=10.0,
+                    help="seconds left out before the range and mean")
     ap.add_argument("--data-dir", default="data", help="where the LGVI runs are cached")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
     ap.add_argument("--out", default="", help="also write the tables to this markdown file")
     a = ap.parse_args(argv)
-    if a.variants < 1:
-        ap.error(f"--variants must be >= 1, got {a.variants}")
-    if a.after < 0:
-        ap.error(f"--after must be >= 0 seconds, got {a.after}")
     torch.set_num_threads(a.threads)
     task = get_task("ellipse")
     models = {}

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.io import write_text_atomic
 from physics.magnetics import CuboidMagnet
 
@@ -105,7 +106,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=Args.out)
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     a = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(a.threads)
     counts = (8, 125, 1728) if a.quick else (8, 64, 216, 512, 1000, 1728, 2000, 4096, 8000, 13824)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import get_task
 from cmlearn.data.generate import simulate_task
 from cmlearn.data.windows import split_ranges
@@ -68,9 +69,9 @@ def probe(pos: torch.Tensor, force: torch.Tensor, nodes: list[int], anchors: tup
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--variants", type=int, default=32)
-    ap.add_argument("--history", type=int, nargs="+", default=[3, 6])
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--variants", type=bounded(int, at_least=1), default=32)
+    ap.add_argument("--history", type=bounded(int, at_least=1), nargs="+", default=[3, 6])
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=2)
     ap.add_argument("--out", default=str(ROOT / "docs" / "node_density.md"))
     a = ap.parse_args(argv)
     if a.variants < 2:

@@ -24,6 +24,7 @@ from dataclasses import replace
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import get_task, scene_rollout
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
@@ -68,12 +69,11 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt)")
-    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds of every scene (0: their own)")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="simulated seconds of every scene (0: their own)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
     ap.add_argument("--out", default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
-    if a.duration < 0:
-        ap.error(f"--duration must be >= 0 (0: the scenes' own), got {a.duration}")
     torch.set_num_threads(a.threads)
     lines = ["Node of interest, max, mean absolute error (mm) x / y / z; chords: the free-running rollout's largest "
              "chord error against the LGVI's largest chord change (mm).", "",

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data.generate import scene_rollout
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
@@ -90,8 +91,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoints", nargs="+", default=["checkpoints/semicircle.pt", "checkpoints/semicircle_fast.pt",
                                                          "checkpoints/square_tracking.pt"])
-    ap.add_argument("--window", type=int, default=20)
-    ap.add_argument("--duration", type=float, default=0.0, help="shorter printed scene (s), for smoke runs")
+    ap.add_argument("--window", type=bounded(int, at_least=1), default=20)
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="shorter printed scene (s), for smoke runs")
     ap.add_argument("--out", default="docs/one_step_bias.md")
     a = ap.parse_args(argv)
     if a.window < 1:

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import cached_dataset
 from cmlearn.data.magnetic import magnet_frames
 from cmlearn.data.windows import node_wrench, split_ranges
@@ -134,21 +135,22 @@ def position_table(rows: list[dict], task, config, a) -> list[str]:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoints", nargs="+", default=["checkpoints/magnetic_rod.pt"])
-    ap.add_argument("--variants", type=int, default=0,
+    ap.add_argument("--variants", type=bounded(int, at_least=0), default=0,
                     help="trajectories the linear steps are fitted on (0: the first checkpoint's training set)")
-    ap.add_argument("--seed", type=int, default=-1, help="their dataset's seed (-1: the first checkpoint's)")
-    ap.add_argument("--eta", type=int, default=0, help="the linear steps' history length (0: the checkpoint's)")
-    ap.add_argument("--ridge", type=float, default=1e-6, help="the linear fits' ridge (standardised features)")
-    ap.add_argument("--duration", type=float, default=0.0, help="shorter trajectories (tests)")
+    ap.add_argument("--seed", type=bounded(int, at_least=-1), default=-1,
+                    help="their dataset's seed (-1: the first checkpoint's)")
+    ap.add_argument("--eta", type=bounded(int, at_least=0), default=0,
+                    help="the linear steps' history length (0: the checkpoint's)")
+    ap.add_argument("--ridge", type=bounded(float, at_least=0), default=1e-6,
+                    help="the linear fits' ridge (standardised features)")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0, help="shorter trajectories (tests)")
     ap.add_argument("--data-dir", default="data", help="where datasets and LGVI reference runs are cached")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", default="")
     a = ap.parse_args(argv)
-    if a.variants == 1 or a.variants < 0:
+    if a.variants == 1:
         ap.error(f"--variants must be >= 2 (the printed trajectory and others) or 0, got {a.variants}")
-    if not a.ridge >= 0:
-        ap.error(f"--ridge must be >= 0, got {a.ridge}")
-    if a.eta < 0 or a.eta == 1:
+    if a.eta == 1:
         ap.error(f"--eta must be >= 2 or 0 (the checkpoint's), got {a.eta}")
     torch.set_num_threads(a.threads)
     try:

@@ -22,6 +22,7 @@ import json
 import torch
 from torch import Tensor
 
+from cmlearn.args import bounded
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.io import write_text_atomic
@@ -59,20 +60,22 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt) of position tasks")
-    ap.add_argument("--starts", type=int, nargs="+", default=[40, 120], help="window starts (frames)")
-    ap.add_argument("--steps", type=int, default=80, help="free-running steps per window (the printed scene's "
+    ap.add_argument("--starts", type=bounded(int, at_least=0), nargs="+", default=[40, 120],
+                    help="window starts (frames)")
+    ap.add_argument("--steps", type=bounded(int, at_least=1), default=80,
+                    help="free-running steps per window (the printed scene's "
                     "test part of Simulation III has 80)")
     ap.add_argument("--data-dir", default="data", help="where the checkpoints' datasets are read or made")
-    ap.add_argument("--variants", type=int, default=0, help="trajectories of the dataset (0: the checkpoint's own; "
+    ap.add_argument("--variants", type=bounded(int, at_least=0), default=0,
+                    help="trajectories of the dataset (0: the checkpoint's own; "
                     "another number makes another dataset, for quick checks)")
-    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (0: the checkpoint's own)")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="simulated seconds (0: the checkpoint's own)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
     ap.add_argument("--out", default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
-    if a.steps < 1 or min(a.starts) < 0:
-        ap.error(f"--steps must be >= 1 and --starts >= 0, got {a.steps} and {a.starts}")
-    if a.variants < 0 or a.variants == 1 or a.duration < 0:
-        ap.error(f"--variants must be 0 or >= 2 and --duration >= 0, got {a.variants} and {a.duration}")
+    if a.variants == 1:
+        ap.error("--variants must be 0 or >= 2, got 1")
     torch.set_num_threads(a.threads)
     rows, out, notes = [], {}, []
     for path in a.checkpoints:

@@ -50,6 +50,7 @@ from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cmlearn.args import bounded
 from cmlearn.data import cached_dataset  # noqa: E402
 from cmlearn.data.generate import reference_rollout  # noqa: E402
 from cmlearn.data.tasks import get_task  # noqa: E402
@@ -434,29 +435,34 @@ class EnsembleStep(PositionOnlyStep):
 def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--task", default="ellipse", choices=sorted(SPECS))
-    ap.add_argument("--variants", type=int, default=None, help="training variants of seed 0 (default: 32 on the "
+    ap.add_argument("--variants", type=bounded(int, at_least=1), default=None,
+                    help="training variants of seed 0 (default: 32 on the "
                     "ellipse, 96 on the semicircle; 1: the printed scene's first 60 %% alone, the thesis's protocol)")
-    ap.add_argument("--minutes", type=float, default=20.0, help="wall-time budget of the training")
+    ap.add_argument("--minutes", type=bounded(float, above=0), default=20.0, help="wall-time budget of the training")
     ap.add_argument("--horizons", default="16:200,64:200,256:200,1024:100",
                     help="stages as HORIZON:ITERATIONS, each with its own cosine learning-rate schedule")
-    ap.add_argument("--batch", type=int, default=32)
-    ap.add_argument("--lr", type=float, default=2e-3)
-    ap.add_argument("--hidden", type=int, default=128)
-    ap.add_argument("--r", type=int, default=3, help="tracked neighbours on either side each node sees")
+    ap.add_argument("--batch", type=bounded(int, at_least=1), default=32)
+    ap.add_argument("--lr", type=bounded(float, above=0), default=2e-3)
+    ap.add_argument("--hidden", type=bounded(int, at_least=1), default=128)
+    ap.add_argument("--r", type=bounded(int, at_least=0), default=3,
+                    help="tracked neighbours on either side each node sees")
     ap.add_argument("--mirrors", default=None, help="axis letters of the task's reflections the step is symmetric "
                     "under (default: x on the ellipse, xz on the semicircle)")
-    ap.add_argument("--noise", type=float, default=0.0, help="metres: one random shift of each start's two frames")
+    ap.add_argument("--noise", type=bounded(float, at_least=0), default=0.0,
+                    help="metres: one random shift of each start's two frames")
     ap.add_argument("--conservative", action="store_true",
                     help="the second difference is minus the gradient of a learned energy (no work around a cycle)")
-    ap.add_argument("--latent", type=int, default=0, help="unobserved coordinates per modelled node (LatentStep: "
+    ap.add_argument("--latent", type=bounded(int, at_least=0), default=0,
+                    help="unobserved coordinates per modelled node (LatentStep: "
                     "conservative, no mirrors, trained on whole runs from rest)")
-    ap.add_argument("--lowpass", type=float, default=0.0, help="Hz: train on trajectories low-passed in time")
+    ap.add_argument("--lowpass", type=bounded(float, at_least=0), default=0.0,
+                    help="Hz: train on trajectories low-passed in time")
     ap.add_argument("--linear", action="store_true", help="only fit and evaluate the least-squares linear step "
                     "(LinearStep) on the same frames, low-passed as asked")
     ap.add_argument("--ensemble", default="", help="only evaluate the mean step of these runs' --out files "
                     "(comma-separated; EnsembleStep)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=2)
+    ap.add_argument("--seed", type=bounded(int, at_least=0), default=0)
     ap.add_argument("--data-dir", default="data")
     ap.add_argument("--init", default="", help="start from this run's weights (its --out file)")
     ap.add_argument("--out", default="runs/position_only_step.pt")

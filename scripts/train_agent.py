@@ -23,6 +23,7 @@ import shlex
 import sys
 from dataclasses import fields
 
+from cmlearn.args import bounded
 from cmlearn.rl.agent import load_agent, save_agent
 from cmlearn.rl.training import AgentTrainConfig, config_from_args, train_agent
 
@@ -36,7 +37,8 @@ def parse(argv=None):
         elif f.type in ("bool", bool):
             ap.add_argument(flag, action="store_true", default=f.default)
         else:
-            ap.add_argument(flag, type=type(f.default), default=f.default)
+            kind = type(f.default)
+            ap.add_argument(flag, type=bounded(kind) if kind in (int, float) else kind, default=f.default)
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--quick", action="store_true", help="smoke-test budget")
     ap.add_argument("--ship", default="", help="copy the final agent checkpoint here")

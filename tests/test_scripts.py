@@ -49,6 +49,43 @@ def parse_fails(script: str, argv: list[str], msg: str, capsys) -> None:
     assert e.value.code == 2 and msg in err, err[-500:]
 
 
+
+SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (ROOT / "scripts").rglob("*.py"))
+
+
+@pytest.mark.parametrize("name", SCRIPTS)
+def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, monkeypatch, capsys):
+    """Each script's parser (caught as ``main([])`` parses, before any work): no option is a plain int or float, and
+    each number option refuses 'nan' with argparse's usage error naming the flag."""
+    import argparse
+
+    class Parsed(Exception):
+        pass
+
+    parsers = []
+
+    def catch(self, *a, **k):
+        parsers.append(self)
+        raise Parsed
+
+    monkeypatch.syspath_prepend(str(ROOT / "scripts" / "bench"))  # work_precision_magnetic imports its sibling
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", catch)
+    with pytest.raises(Parsed):
+        load_script(name).main([])
+    monkeypatch.undo()
+    ap, checked = parsers[0], 0
+    for act in ap._actions:
+        flag = (act.option_strings or [act.dest])[0]
+        assert act.type not in (int, float), f"{name} {flag}: a plain {act.type.__name__}, unchecked"
+        if getattr(act.type, "__qualname__", "").startswith("bounded."):
+            with pytest.raises(SystemExit) as e:
+                ap.parse_args([flag, "nan"])
+            err = capsys.readouterr().err
+            assert e.value.code == 2 and f"argument {flag}: must be" in err, err[-300:]
+            checked += 1
+    assert checked or name in ("report_agent", "report_lgvi_convergence", "report_rollout_sensitivity",
+                               "report_surrogates"), f"{name}: no number option found"
+
 def test_the_benches_last_line_is_strict_json_rounded_to_the_digits_asked():
     from cmlearn.eval.timing import json_line
     line = json_line({"hz": 1234.56789, "rows": [{"ratio": 2 / 3, "bad": math.nan}], "n": 7, "inf": -math.inf},
@@ -1203,4 +1240,5 @@ def test_report_hybrid_tolerance_eager(tmp_path):
     assert 0 < loose["deviation_max_deg"] < 0.05 and ref["lgvi_sum_mean_deg"] > 0
     assert loose["lgvi_sum_mean_deg"] == pytest.approx(ref["lgvi_sum_mean_deg"], abs=0.01)
     assert "| 0.0001 |" in out.read_text() and "--eager --duration 0.2" in out.read_text()
-    script_fails([str(ROOT / "scripts/report_hybrid_tolerance.py"), "--tols", "0"], tmp_path, "every --tols > 0")
+    script_fails([str(ROOT / "scripts/report_hybrid_tolerance.py"), "--tols", "0"], tmp_path,
+                 "argument --tols: must be > 0, got '0'")

@@ -35,6 +35,7 @@ import numpy as np
 import scipy.optimize
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.eval.timing import json_line
 from physics.cosserat_shooting import CosseratSolver
 from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
@@ -153,11 +154,12 @@ class _Converged(Exception):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short timing windows")
-    ap.add_argument("--threads", type=int, default=Args.threads)
-    ap.add_argument("--batch", type=int, default=Args.batch)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=Args.threads)
+    ap.add_argument("--batch", type=bounded(int, at_least=1), default=Args.batch)
     ap.add_argument("--no-compile", dest="compile", action="store_false")
     ap.add_argument("--dtype", choices=("float64", "float32"), default=Args.dtype)
-    ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.5 quick, 2 full)")
+    ap.add_argument("--window", type=bounded(float, above=0), default=None,
+                    help="seconds per timing (default 0.5 quick, 2 full)")
     args = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(args.threads)
     window = args.window or (0.5 if args.quick else 2.0)

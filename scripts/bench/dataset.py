@@ -19,6 +19,7 @@ from statistics import median
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import TASKS, data_hash
 from cmlearn.data.generate import lgvi_frames, scene_integrator
 
@@ -26,14 +27,15 @@ from cmlearn.data.generate import lgvi_frames, scene_integrator
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--task", default="semicircle", choices=sorted(k for k, t in TASKS.items() if not t.custom))
-    ap.add_argument("--variants", type=int, default=0, help="variants in the batch (default: the shipped model's)")
-    ap.add_argument("--duration", type=float, default=0.0, help="simulated seconds (default 0.2, --quick 0.02)")
-    ap.add_argument("--rounds", type=int, default=0, help="timed runs of each (default 2, --quick 1)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--variants", type=bounded(int, at_least=0), default=0,
+                    help="variants in the batch (default: the shipped model's)")
+    ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
+                    help="simulated seconds (default 0.2, --quick 0.02)")
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0,
+                    help="timed runs of each (default 2, --quick 1)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--quick", action="store_true")
     a = ap.parse_args(argv)
-    if a.variants < 0 or a.duration < 0 or a.rounds < 0 or a.threads < 1:
-        raise SystemExit("--variants, --duration and --rounds must be >= 0 and --threads >= 1")
     variants = a.variants or (3 if a.quick else {"semicircle": 96, "ellipse": 32, "square_tracking": 64}.get(a.task, 32))
     duration = a.duration or (0.02 if a.quick else 0.2)
     rounds = a.rounds or (1 if a.quick else 2)

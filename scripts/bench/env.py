@@ -19,6 +19,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from cmlearn.args import bounded
+
 
 @dataclass
 class Args:
@@ -32,9 +34,9 @@ class Args:
 def parse(argv=None) -> Args:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1.5 s of stepping")
-    ap.add_argument("--seconds", type=float, default=5.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--map-seed", dest="map_seed", type=int, default=0)
+    ap.add_argument("--seconds", type=bounded(float, above=0), default=5.0)
+    ap.add_argument("--seed", type=bounded(int, at_least=0), default=0)
+    ap.add_argument("--map-seed", dest="map_seed", type=bounded(int, at_least=0), default=0)
     ap.add_argument("--atlas-cache", dest="atlas_cache", default="default",
                     help="folder of cached atlases ('default': $CMLEARN_CACHE or ~/.cache/cmlearn; 'tmp': a temp dir)")
     a = Args(**vars(ap.parse_args(argv)))

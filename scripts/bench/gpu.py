@@ -32,6 +32,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.eval.timing import json_line
 from physics import LGVI, Loads, UniformField
 from physics.cosserat_shooting import CosseratSolver
@@ -75,20 +76,18 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short windows and batches up to 64")
     ap.add_argument("--device", default=Args.device)
-    ap.add_argument("--threads", type=int, default=Args.threads)
+    ap.add_argument("--threads", type=bounded(int, at_least=0), default=Args.threads,
+                    help="CPU threads (0: every core)")
     ap.add_argument("--workloads", nargs="+", default=list(WORKLOADS), choices=WORKLOADS)
-    ap.add_argument("--batches", type=int, nargs="+", default=[])
-    ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.3 quick, 1.5 full)")
+    ap.add_argument("--batches", type=bounded(int, at_least=1), nargs="+", default=[])
+    ap.add_argument("--window", type=bounded(float, above=0), default=None,
+                    help="seconds per timing (default 0.3 quick, 1.5 full)")
     a = Args(**vars(ap.parse_args(argv)))
     dev = torch.device(a.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device is seen here (use --device cpu to check the script)")
-    if a.threads < 0:
-        raise SystemExit(f"--threads must be >= 0, got {a.threads}")
     torch.set_num_threads(a.threads or os.cpu_count() or 1)
     batches = a.batches or ([1, 64] if a.quick else [1, 64, 1024, 16384])
-    if any(b < 1 for b in batches):
-        raise SystemExit(f"--batches must be positive, got {batches}")
     window = a.window or (0.3 if a.quick else 1.5)
     sides = {"cpu": torch.device("cpu"), "dev": dev}
     out = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",

@@ -23,6 +23,7 @@ from statistics import median
 import numpy as np
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.eval.timing import json_line
 from physics import LGVI, CircularSection, Loads, Magnet, Material, Rod
 
@@ -91,13 +92,15 @@ def pyelastica_system(rod: Rod, n_rods: int):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short timing windows, a batch of at most 64 rods")
-    ap.add_argument("--threads", type=int, default=Args.threads)
-    ap.add_argument("--batch", type=int, default=Args.batch)
-    ap.add_argument("--n-elements", type=int, default=Args.n_elements)
-    ap.add_argument("--steps-per-call", type=int, default=Args.steps_per_call)
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=Args.threads)
+    ap.add_argument("--batch", type=bounded(int, at_least=1), default=Args.batch)
+    ap.add_argument("--n-elements", type=bounded(int, at_least=1), default=Args.n_elements)
+    ap.add_argument("--steps-per-call", type=bounded(int, at_least=1), default=Args.steps_per_call)
     ap.add_argument("--no-compile", dest="compile", action="store_false")
-    ap.add_argument("--window", type=float, default=None, help="seconds per timing (default 0.5 quick, 2 full)")
-    ap.add_argument("--rounds", type=int, default=0, help="interleaved timing rounds (default 1 quick, 3 full)")
+    ap.add_argument("--window", type=bounded(float, above=0), default=None,
+                    help="seconds per timing (default 0.5 quick, 2 full)")
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0,
+                    help="interleaved timing rounds (default 1 quick, 3 full)")
     args = Args(**vars(ap.parse_args(argv)))
     if args.quick:  # a small batch, the same on both sides
         args.batch = min(args.batch, 64)

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from cmlearn.args import bounded
 from physics.magnetics import CuboidMagnet
 
 EDGE, BR = 0.0508, 1.3
@@ -34,11 +35,12 @@ class Args:
 def parse(argv=None) -> Args:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1000 points, fewer repeats (about 10 s)")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--points", type=int, default=10_000)
-    ap.add_argument("--dipoles", type=int, default=2000, help="requested count; the grid is the nearest n^3")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
+    ap.add_argument("--points", type=bounded(int, at_least=1), default=10_000)
+    ap.add_argument("--dipoles", type=bounded(int, at_least=1), default=2000,
+                    help="requested count; the grid is the nearest n^3")
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=bounded(int, at_least=0), default=0)
     a = Args(**vars(ap.parse_args(argv)))
     if a.quick:
         a.points = min(a.points, 1000)

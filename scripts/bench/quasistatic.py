@@ -29,6 +29,7 @@ from statistics import mean, median
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
 from cmlearn.eval.timing import lgvi_blocks
@@ -70,13 +71,12 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--task", default="magnetic_rod", choices=("magnetic_rod", "magnetic_rod_planar"))
     ap.add_argument("--scene", default="", help="one of the task's scenes (default: the held-out one)")
-    ap.add_argument("--rounds", type=int, default=0, help="rounds of timing (default 5, --quick 2)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0,
+                    help="rounds of timing (default 5, --quick 2)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--compile", action="store_true", help="also time the hybrid with the solver's compiled path")
     ap.add_argument("--quick", action="store_true")
     a = ap.parse_args(argv)
-    if a.rounds < 0 or a.threads < 1:
-        raise SystemExit("--rounds must be >= 0 and --threads >= 1")
     rounds = a.rounds or (2 if a.quick else 5)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)

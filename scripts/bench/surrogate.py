@@ -38,6 +38,7 @@ from statistics import mean, median
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
 from cmlearn.eval.timing import lgvi_blocks
@@ -72,11 +73,10 @@ def main(argv=None):
     ap.add_argument("--checkpoint", default="")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--compile", action="store_true")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--rounds", type=int, default=0, help="rounds of interleaved timing (default 9, --quick 3)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0,
+                    help="rounds of interleaved timing (default 9, --quick 3)")
     a = Args(**vars(ap.parse_args(argv)))
-    if a.rounds < 0 or a.threads < 1:
-        raise SystemExit("--rounds must be >= 0 and --threads >= 1")
     rounds = a.rounds or (3 if a.quick else 9)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)

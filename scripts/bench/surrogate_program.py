@@ -39,6 +39,7 @@ import time
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.models import node_lstm
 from cmlearn.surrogate import Surrogate
 from physics.programs import compile_program
@@ -98,13 +99,11 @@ def main(argv=None):
     ap.add_argument("--checkpoint", default="checkpoints/semicircle.pt")
     ap.add_argument("--scene", default="semicircle_heldout")
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--rounds", type=int, default=0, help="default 9 (3 with --quick)")
-    ap.add_argument("--calls", type=int, default=0, help="default 400 (100 with --quick)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0, help="default 9 (3 with --quick)")
+    ap.add_argument("--calls", type=bounded(int, at_least=0), default=0, help="default 400 (100 with --quick)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     a = ap.parse_args(argv)
     a.rounds, a.calls = a.rounds or (3 if a.quick else 9), a.calls or (100 if a.quick else 400)
-    if a.rounds < 1 or a.calls < 1:
-        raise SystemExit("--rounds and --calls must be >= 1")
     torch.set_num_threads(a.threads)
     engine = Surrogate.load(a.checkpoint)
     model = engine.model

@@ -33,6 +33,7 @@ from statistics import median
 
 import torch
 
+from cmlearn.args import bounded
 from cmlearn.data import get_task
 from cmlearn.data.generate import lgvi_frames, scene_integrator
 from cmlearn.eval.metrics import axis_errors
@@ -120,12 +121,10 @@ def main(argv=None):
     ap.add_argument("--task", default="semicircle", choices=sorted(SWEEPS))
     ap.add_argument("--quick", action="store_true", help="the printed scene's first 0.3 s, one coarse mesh")
     ap.add_argument("--compile", action="store_true", help="also the compiled LGVI and surrogates")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--rounds", type=int, default=0, help="timing rounds (default 3, --quick 1)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0, help="timing rounds (default 3, --quick 1)")
     ap.add_argument("--out", default="", help="folder for the table (.md) and the plot (.png)")
     a = Args(**vars(ap.parse_args(argv)))
-    if a.rounds < 0 or a.threads < 1:
-        raise SystemExit("--rounds must be >= 0 and --threads >= 1")
     rounds = a.rounds or (1 if a.quick else 3)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)

@@ -34,6 +34,7 @@ from statistics import median
 import torch
 from work_precision import timed_rows
 
+from cmlearn.args import bounded
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
 from cmlearn.data.generate import lgvi_frames
@@ -114,12 +115,10 @@ def main(argv=None):
     ap.add_argument("--task", default="magnetic_rod", choices=("magnetic_rod",))
     ap.add_argument("--quick", action="store_true", help="the held-out profile's first 0.3 s, one coarse mesh")
     ap.add_argument("--eager", action="store_true", help="every model eager")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--rounds", type=int, default=0, help="timing rounds (default 3, --quick 1)")
+    ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
+    ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0, help="timing rounds (default 3, --quick 1)")
     ap.add_argument("--out", default="", help="folder for the table (.md)")
     a = ap.parse_args(argv)
-    if a.rounds < 0 or a.threads < 1:
-        raise SystemExit("--rounds must be >= 0 and --threads >= 1")
     rounds = a.rounds or (1 if a.quick else 3)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
