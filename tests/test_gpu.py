@@ -224,7 +224,6 @@ def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():
     assert swing > 1e-4 and float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
 
 
-
 def test_quasistatic_hybrid_rollout_with_a_fold_clock_on_cuda_equals_cpu():
     """The magnetic rod's hybrid along the held-out profile's static track (solved once on the CPU) through its first
     snap-through (frame 108): the shipped correction, and a model that reads the fold clock (random weights), run from
@@ -257,6 +256,7 @@ def test_quasistatic_hybrid_rollout_with_a_fold_clock_on_cuda_equals_cpu():
             model.cpu()
             assert gpu.device.type == CUDA.type
             assert float((gpu.cpu() - cpu).abs().max()) < tol * swing + 1e-6, (tf32, swing)
+
 
 # the magnetic rod selects its epochs in closed loop: its wrench model runs on the GPU too (before 2026-11-29 the
 # node forces came back on the CPU and the run stopped at its first validation)

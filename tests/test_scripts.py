@@ -49,7 +49,6 @@ def parse_fails(script: str, argv: list[str], msg: str, capsys) -> None:
     assert e.value.code == 2 and msg in err, err[-500:]
 
 
-
 SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (ROOT / "scripts").rglob("*.py"))
 
 
@@ -85,6 +84,7 @@ def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, m
             checked += 1
     assert checked or name in ("report_agent", "report_lgvi_convergence", "report_rollout_sensitivity",
                                "report_surrogates"), f"{name}: no number option found"
+
 
 def test_the_benches_last_line_is_strict_json_rounded_to_the_digits_asked():
     from cmlearn.eval.timing import json_line
