@@ -34,7 +34,6 @@ DEFAULT_SCENE = "pdms_tip_magnet"  # 2 s simulated in roughly 10-20 s of wall ti
 _FRAMES = 1000  # default number of recorded frames
 
 
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cmlearn", description="Modeling, learning and control of magnetically actuated continuum rods.")
