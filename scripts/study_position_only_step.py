@@ -50,7 +50,7 @@ from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded  # noqa: E402
 from cmlearn.data import cached_dataset  # noqa: E402
 from cmlearn.data.generate import reference_rollout  # noqa: E402
 from cmlearn.data.tasks import get_task  # noqa: E402
@@ -436,8 +436,8 @@ def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--task", default="ellipse", choices=sorted(SPECS))
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=None,
-                    help="training variants of seed 0 (default: 32 on the "
-                    "ellipse, 96 on the semicircle; 1: the printed scene's first 60 %% alone, the thesis's protocol)")
+                    help="training variants of seed 0 (default: 32 on the ellipse, 96 on the semicircle; "
+                    "1: the printed scene's first 60 %% alone, the thesis's protocol)")
     ap.add_argument("--minutes", type=bounded(float, above=0), default=20.0, help="wall-time budget of the training")
     ap.add_argument("--horizons", default="16:200,64:200,256:200,1024:100",
                     help="stages as HORIZON:ITERATIONS, each with its own cosine learning-rate schedule")
@@ -453,8 +453,8 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--conservative", action="store_true",
                     help="the second difference is minus the gradient of a learned energy (no work around a cycle)")
     ap.add_argument("--latent", type=bounded(int, at_least=0), default=0,
-                    help="unobserved coordinates per modelled node (LatentStep: "
-                    "conservative, no mirrors, trained on whole runs from rest)")
+                    help="unobserved coordinates per modelled node (LatentStep: conservative, "
+                    "no mirrors, trained on whole runs from rest)")
     ap.add_argument("--lowpass", type=bounded(float, at_least=0), default=0.0,
                     help="Hz: train on trajectories low-passed in time")
     ap.add_argument("--linear", action="store_true", help="only fit and evaluate the least-squares linear step "
