@@ -224,6 +224,68 @@ def test_loop_model_anchored_at_its_circle_on_cuda_equals_cpu():
     assert swing > 1e-4 and float((gpu.cpu() - cpu).abs().max()) < 1e-3 * swing
 
 
+def graph_rollouts(engine, scene, n: int, ref: torch.Tensor) -> dict:
+    """``n`` steps of ``scene``'s forces from rest in ``ref`` (1, n_tracked, 3) through the engine's stepper: on the
+    CPU, on the device eagerly and as CUDA-graph replays (two graphed steppers stepped in turn, which must not share
+    buffers), each (n, n_tracked, 3) on the CPU."""
+    W = engine.eta + 1
+    wrench = engine.scene_wrench(scene, n)[:, None]
+    hist = ref[:, None].expand(-1, W, -1, -1)
+    out = {}
+    with torch.no_grad():
+        st = engine.stepper(hist, ref)
+        out["cpu"] = torch.cat([st.step(w) for w in wrench])
+        engine.model.to(CUDA)
+        h, r, wd = hist.to(CUDA), ref.to(CUDA), wrench.to(CUDA)
+        st = engine.stepper(h, r)
+        out["eager"] = torch.cat([st.step(w) for w in wd]).cpu()
+        if CUDA.type == "cuda":  # CMLEARN_GPU_TEST_DEVICE=cpu: no graph to record
+            a, b = engine.stepper(h, r, graph=True), engine.stepper(h, r, graph=True)
+            steps = [(a.step(w), b.step(w)) for w in wrench]  # from the host, the graph copies them in
+            out["graph"], out["graph_b"] = (torch.cat(x).cpu() for x in zip(*steps))
+    engine.model.cpu()
+    return out
+
+
+def test_graphed_steppers_on_cuda_equal_the_eager_steps():
+    """``Surrogate.stepper(..., graph=True)`` with the shipped mirrored Simulation III model (all four mirror images),
+    the same weights with the chord projection after each replay, and the Simulation I model anchored at its circle:
+    one replay a step gives the device's eager steps (the same kernels, to 1e-6 of the swing) and so the CPU's to 1e-3
+    of it; two graphed steppers keep apart; the loop at rest in its circle stays there exactly."""
+    from cmlearn.models import NodeLSTMSurrogate
+    from cmlearn.surrogate import Surrogate
+
+    engine = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt")
+    task = engine.task
+    chords = Surrogate(NodeLSTMSurrogate(replace(engine.model.config, chord_projection=True)), engine.meta)
+    chords.model.load_state_dict(engine.model.state_dict())
+    chords.model.freeze_features()
+    scene = replace(task.scene_by_name(task.scene), duration=0.3)
+    ref = scene.initial_configuration()["p"][list(task.tracked)].float()[None]
+    loop = Surrogate.load(ROOT / "checkpoints" / "ellipse.pt")
+    circle = torch.tensor(loop.model.config.rest_shape)[None]
+    loop_scene = loop.task.base_scene()
+    loop_ref = loop_scene.initial_configuration()["p"][list(loop.task.tracked)].float()[None]
+    for eng, sc, r, n in ((engine, scene, ref, 30), (chords, scene, ref, 30), (loop, loop_scene, loop_ref, 40)):
+        out = graph_rollouts(eng, sc, n, r)
+        swing = float((out["cpu"] - r).abs().max())
+        assert swing > 1e-4
+        assert float((out["eager"] - out["cpu"]).abs().max()) < 1e-3 * swing
+        if CUDA.type == "cuda":
+            assert float((out["graph"] - out["eager"]).abs().max()) < 1e-6 * swing
+            assert torch.equal(out["graph"], out["graph_b"])
+    if CUDA.type == "cuda":
+        held = graph_rollouts(loop, replace(loop_scene, loads=replace(loop_scene.loads, force=None)), 20, circle)
+        assert torch.equal(held["graph"], circle.expand_as(held["graph"]))
+        with pytest.raises(ValueError, match="graph: a CUDA graph needs the model"):
+            engine.stepper(ref[:, None].expand(-1, 3, -1, -1), ref, graph=True)
+        engine.model.to(CUDA)
+        st = engine.stepper(ref[:, None].expand(-1, 3, -1, -1).to(CUDA), ref.to(CUDA), graph=True)
+        with pytest.raises(ValueError, match=r"wrench must be torch.float32 \(the model's dtype\), got torch.float64"):
+            st.step(torch.zeros(1, len(task.modeled), 3, dtype=D, device=CUDA))
+        engine.model.cpu()
+
+
 def test_quasistatic_hybrid_rollout_with_a_fold_clock_on_cuda_equals_cpu():
     """The magnetic rod's hybrid along the held-out profile's static track (solved once on the CPU) through its first
     snap-through (frame 108): the shipped correction, and a model that reads the fold clock (random weights), run from

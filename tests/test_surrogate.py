@@ -1171,6 +1171,9 @@ def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
         engine.step(hist[:, :, :5], wrench, ref)
     with pytest.raises(ValueError, match="ref must be"):
         engine.stepper(hist, ref[0])
+    with pytest.raises(ValueError, match="graph: a CUDA graph needs the model, hist and ref on a CUDA device, got the "
+                                         "model on cpu, hist on cpu, ref on cpu"):
+        engine.stepper(hist, ref, graph=True)
     with pytest.raises(ValueError, match=r"hist must be torch.float32 \(the model's dtype\), got torch.float64"):
         engine.step(hist.double(), wrench, ref)
     with pytest.raises(ValueError, match=r"wrench must be torch.float32 .*, got torch.float64"):

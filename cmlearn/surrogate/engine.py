@@ -11,7 +11,8 @@ that is itself mirror symmetric (its initial shape and every force, e.g. Simulat
 runs its rollout with one image per coset of the scene's symmetries (``run_scene``; by hand:
 ``with engine.symmetric(axes):``), the same step in fewer operations. A rollout steps through
 :meth:`Surrogate.stepper`, which carries each node's LSTM states from step to step (each frame runs through
-the LSTM once: :meth:`~cmlearn.models.NodeLSTMSurrogate.carried_step`). A task with its own rollout (the
+the LSTM once: :meth:`~cmlearn.models.NodeLSTMSurrogate.carried_step`); on a CUDA device ``stepper(..., graph=True)``
+replays each step as one recorded CUDA graph. A task with its own rollout (the
 magnetic rod's closed loop, :mod:`cmlearn.surrogate.magnetic`) compiles that whole loop step through
 :meth:`Surrogate.program`.
 """
@@ -254,11 +255,12 @@ class Surrogate:
         check_rollout(out, self.task, scene.rod.length)
         return out, wall
 
-    def stepper(self, hist: Tensor, ref: Tensor) -> "Stepper":
+    def stepper(self, hist: Tensor, ref: Tensor, graph: bool = False) -> "Stepper":
         """A rollout from the history (B, eta+1, n_tracked, 3) and the reference shape (B, n_tracked, 3) that carries
         the LSTM states from step to step (:class:`Stepper`): the same steps as :meth:`step`, in fewer operations.
-        It steps with the mirror images in use when it is made (:meth:`symmetric`)."""
-        return Stepper(self, hist, ref)
+        It steps with the mirror images in use when it is made (:meth:`symmetric`). ``graph``: on a CUDA device, each
+        step one replay of a CUDA graph recorded when the stepper is made (:class:`Stepper`)."""
+        return Stepper(self, hist, ref, graph=graph)
 
     @torch.no_grad()
     def step_latency(self, n: int = 2000, warmup: int = 50, scene=None) -> float:
@@ -297,11 +299,21 @@ class Stepper:
 
     Its states start from the history's frames, and a ``rest_anchor`` model's output at rest is taken at the
     states' fixed point at rest, both through the step itself, so that a rod at rest stays there exactly, eager or
-    compiled (in a window's arithmetic, :meth:`Surrogate.step`'s, the carried step agrees with it to round-off)."""
+    compiled (in a window's arithmetic, :meth:`Surrogate.step`'s, the carried step agrees with it to round-off).
 
-    def __init__(self, engine: Surrogate, hist: Tensor, ref: Tensor):
+    ``graph`` (inputs and model on a CUDA device): the step, with the copy of its new states and frames into the
+    stepper's own, is recorded once into a CUDA graph (:class:`torch.cuda.CUDAGraph`), and each :meth:`step` copies
+    the forces in, replays it and returns a copy of the new frame: the same kernels, so the same numbers as the eager
+    step on that device, at one launch instead of dozens (at batch 1 the eager step waits on their launches). The
+    graph reads the stepper's reference shape and rest output where they are when it is recorded: change them in
+    place, not by rebinding. ``python scripts/bench/gpu.py --workloads surrogate_step`` times it."""
+
+    def __init__(self, engine: Surrogate, hist: Tensor, ref: Tensor, graph: bool = False):
         model, E = engine.model, engine.eta
         check_inputs(model, E, hist, ref)
+        if graph and not (hist.is_cuda and ref.is_cuda and next(model.parameters()).is_cuda):
+            raise ValueError(f"graph: a CUDA graph needs the model, hist and ref on a CUDA device, got the model on "
+                             f"{next(model.parameters()).device}, hist on {hist.device}, ref on {ref.device}")
         self.model, self.ref, self.axes = model, ref, model.symmetry_axes
         B, K = hist.shape[0], model.idx_modeled.numel()
         # h and c in one tensor (2, eta + 1, G * B * K, hidden): an input and an output fewer, 0.5 us of a 64 us step
@@ -329,6 +341,34 @@ class Stepper:
             state = self._step(state, hist[:, [max(j - 1, 0), j]], zero, ref, self.rest)[3]
         # canonical strides, as traced (a view of hist is "contiguous" with its batch dim of size 1 strided by 3 frames)
         self.state, self.frames = state, hist[:, -2:].clone(memory_format=torch.contiguous_format)
+        self._graph = self._record(zero) if graph else None
+
+    def _record(self, zero: Tensor) -> "torch.cuda.CUDAGraph":
+        """The CUDA graph of one step from the stepper's states, frames and force buffer ``zero`` (kept as
+        ``self._wrench``) that writes the new states and frames back into them and the new frame into ``self._next``.
+        Recorded after three eager steps on a side stream (lazy initialisations, e.g. cuBLAS's workspace, cannot be
+        recorded), from copies, so the rollout itself has not moved."""
+        bufs = (self.state, self.frames)
+        saved = [b.clone() for b in bufs]
+        self._wrench = zero
+        side = torch.cuda.Stream(device=zero.device)
+        side.wait_stream(torch.cuda.current_stream(zero.device))
+        with torch.cuda.stream(side), torch.no_grad():
+            for _ in range(3):
+                self._graph_body()
+        torch.cuda.current_stream(zero.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph), torch.no_grad():
+            self._next = self._graph_body()
+        for b, s in zip(bufs, saved):  # recording runs nothing: the warm-up steps are what is undone
+            b.copy_(s)
+        return graph
+
+    def _graph_body(self) -> Tensor:
+        frames, nxt, _, state = self._step(self.state, self.frames, self._wrench, self.ref, self.rest)
+        self.state.copy_(state)
+        self.frames.copy_(frames)
+        return nxt
 
     def step(self, wrench: Tensor) -> Tensor:
         """The next frame (B, n_tracked, 3) for the node forces (B, K, 3) over the step."""
@@ -338,6 +378,16 @@ class Stepper:
                                f"now uses those of {model.symmetry_axes}: make a new stepper")
         if wrench.shape != self._wrench_shape:
             raise ValueError(f"wrench must be (B, K, 3) = {tuple(self._wrench_shape)}, got {tuple(wrench.shape)}")
+        if self._graph is not None:
+            if wrench.dtype != self._wrench.dtype:  # a copy would convert it
+                raise ValueError(f"wrench must be {self._wrench.dtype} (the model's dtype), got {wrench.dtype}")
+            self._wrench.copy_(wrench)
+            self._graph.replay()
+            nxt = self._next.clone()
+            if model.config.chord_projection:
+                nxt = model.project_chords(nxt, self.ref)
+                self.frames[:, 1].copy_(nxt)
+            return nxt
         if wrench.stride() != self._wrench_stride:  # the program's layout
             wrench = torch.empty(self._wrench_shape, dtype=wrench.dtype, device=wrench.device).copy_(wrench)
         self.frames, nxt, _, self.state = self._step(self.state, self.frames, wrench, self.ref, self.rest)
