@@ -186,6 +186,14 @@ def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):
     for rows in (res["lgvi"], res["lgvi_compiled"], res["cosserat"], res["surrogate"]):
         for r in rows:
             assert r["ratio_dev_over_cpu"] > 0 and max(v for k, v in r.items() if k.startswith("max_abs_diff")) == 0
+    # the rollout step: the CPU's compiled step for the first batch only, the device's eager step for the graph's
+    step = res["surrogate_step"]
+    assert [r["batch"] for r in step] == [1, 4] and step[0]["cpu_compile_s"] > 0 and "cpu_compiled_error" in step[1]
+    assert set(step[0]["s_per_step"]) == {"cpu_eager", "cpu_compiled", "dev_eager", "dev_graph",
+                                          "dev_graph_host_round_trip"}
+    for r in step:
+        assert min(r["s_per_step"].values()) > 0 and r["swing_m"] > 0.01
+        assert r["max_abs_diff_m_graph_vs_cpu"] == r["max_abs_diff_m_graph_vs_dev_eager"] == 0
 
 
 def test_train_surrogate_quick_closed_loop(tmp_path):

@@ -15,7 +15,14 @@ inputs, with the largest difference between the two results after the timed step
   a batch of fields (B0 times 1-1.3, turned up to 30 deg in plane), cold start: solves per second
   (the first three batch sizes only; ``--quick``: the first);
 - the shipped Simulation III surrogate (``checkpoints/semicircle_fast.pt``), float32, a free-running
-  rollout of a batch of histories: node-steps per second (modelled nodes x steps x batch).
+  rollout of a batch of histories: node-steps per second (modelled nodes x steps x batch);
+- its rollout step as a controller calls it (``surrogate_step``; ``Surrogate.stepper``, the LSTM states carried):
+  seconds a step, the device synchronised after each, for a batch of the printed push from rest, on the CPU
+  eager and compiled (``Surrogate.compile``; the compile not timed; ``--quick``: the first batch size only, with
+  library matrix products) and on the device eager and as
+  one CUDA-graph replay (``stepper(..., graph=True)``), and the graph's step with the forces coming from and the
+  frame going back to the host; then the largest difference between the graph's 200-step rollout and the CPU's
+  eager one, and between the graph's and the device's eager one.
 
 Timings synchronise the device before reading the clock. ``--device cpu`` runs both sides on the CPU
 (a check of the script where no GPU is seen). Prints human-readable lines and, last, one JSON line.
@@ -40,7 +47,8 @@ from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
 
 DT = 9e-5
 GRAVITY = (0.0, -9.81, 0.0)
-WORKLOADS = ("lgvi", "lgvi_compiled", "cosserat", "surrogate")
+WORKLOADS = ("lgvi", "lgvi_compiled", "cosserat", "surrogate", "surrogate_step")
+STEP_ROLLOUT = 200  # steps of the surrogate_step workload's rollouts compared
 COMPILED_STEPS = 40  # steps a timed compiled_rollout call (ten program calls of four steps)
 
 
@@ -52,6 +60,7 @@ class Args:
     workloads: list[str] = field(default_factory=lambda: list(WORKLOADS))
     batches: list[int] = field(default_factory=list)  # empty: 1 and 64 with --quick, else 1, 64, 1024, 16384
     window: float | None = None
+    no_cpu_compile: bool = False
 
 
 def timeit(fn, window: float, sync) -> float:
@@ -82,6 +91,8 @@ def main(argv=None):
     ap.add_argument("--batches", type=bounded(int, at_least=1), nargs="+", default=[])
     ap.add_argument("--window", type=bounded(float, above=0), default=None,
                     help="seconds per timing (default 0.3 quick, 1.5 full)")
+    ap.add_argument("--no-cpu-compile", action="store_true",
+                    help="surrogate_step: leave out the CPU's compiled step (a run on torch 2.11 crashed with it)")
     a = Args(**vars(ap.parse_args(argv)))
     dev = torch.device(a.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
@@ -93,7 +104,7 @@ def main(argv=None):
     out = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
            "threads": torch.get_num_threads(), "torch": torch.__version__,
            "cpu": platform.processor() or platform.machine(), "lgvi": [], "lgvi_compiled": [], "cosserat": [],
-           "surrogate": []}
+           "surrogate": [], "surrogate_step": []}
     print(f"device {out['device']} against the CPU ({out['threads']} threads), torch {out['torch']}")
 
     # ---------------------------------------------------------------------- LGVI, PDMS rod + tip magnet
@@ -219,8 +230,80 @@ def main(argv=None):
         print(f"surrogate float32 batch {batch:6d}: CPU {rate['cpu']:.3e}, device {rate['dev']:.3e} node-steps/s "
               f"(x{row['ratio_dev_over_cpu']:.2f}); max |device - CPU| {diff:.1e} m")
 
+    for batch in batches if "surrogate_step" in a.workloads else ():
+        compile_cpu = not a.no_cpu_compile and (not a.quick or batch == batches[0])
+        out["surrogate_step"].append(surrogate_step(engine, batch, dev, window, compile_cpu,
+                                                    gemm_templates=not a.quick))
+
     print(json_line(out, digits=4))
     return out
+
+
+def surrogate_step(engine, batch: int, dev: torch.device, window: float, cpu_compile: bool = True,
+                   gemm_templates: bool = True) -> dict:
+    """The ``surrogate_step`` workload at one batch size (the module's docstring); prints its line. ``gemm_templates``:
+    as in :meth:`~cmlearn.surrogate.Surrogate.compile` (False with ``--quick``: a faster compile)."""
+    from cmlearn.surrogate import Surrogate
+    task, W = engine.task, engine.eta + 1
+    scene = task.base_scene()
+    wrench = engine.scene_wrench(scene, STEP_ROLLOUT)[:, None].expand(-1, batch, -1, -1).contiguous()
+    p0 = scene.initial_configuration()["p"][list(task.tracked)].float().expand(batch, -1, -1)
+    hist = p0[:, None].expand(-1, W, -1, -1)
+
+    def stepper(eng, d, graph=False):
+        return eng.stepper(hist.to(d), p0.to(d), graph=graph)
+
+    def latency(st, w, host=False):
+        k = [0]
+
+        def one():
+            x = st.step(w[k[0] % STEP_ROLLOUT])
+            if host:
+                x.cpu()
+            k[0] += 1
+        return timeit(one, window, sync_for(w.device))
+
+    def roll(st, w):
+        return torch.stack([st.step(w[k]) for k in range(STEP_ROLLOUT)]).cpu()
+
+    cpu = torch.device("cpu")
+    row = {"checkpoint": "semicircle_fast.pt", "dtype": "float32", "batch": batch,
+           "modelled_nodes": engine.model.idx_modeled.numel(), "s_per_step": {}}
+    t = row["s_per_step"]
+    with torch.no_grad():
+        t["cpu_eager"] = latency(stepper(engine, cpu), wrench)
+        ref = roll(stepper(engine, cpu), wrench)
+        if not cpu_compile:
+            row["cpu_compiled_error"] = "left out (--no-cpu-compile, or --quick past the first batch)"
+        else:
+            try:
+                fast = Surrogate(engine.model, engine.meta).compile(gemm_templates=gemm_templates)
+                t0 = time.perf_counter()
+                stepper(fast, cpu).step(wrench[0])
+                row["cpu_compile_s"] = time.perf_counter() - t0
+                t["cpu_compiled"] = latency(stepper(fast, cpu), wrench)
+            except Exception as e:  # a torch whose inductor cannot lower the program: say so and go on
+                row["cpu_compiled_error"] = f"{type(e).__name__}: {str(e)[:200]}"
+        engine.model.to(dev)
+        wd = wrench.to(dev)
+        t["dev_eager"] = latency(stepper(engine, dev), wd)
+        graph = dev.type == "cuda"  # --device cpu: the device's eager step stands in for the graph's
+        t0 = time.perf_counter()
+        st = stepper(engine, dev, graph=graph)
+        sync_for(dev)()
+        row["graph_record_s"] = time.perf_counter() - t0
+        t["dev_graph"] = latency(st, wd)
+        t["dev_graph_host_round_trip"] = latency(stepper(engine, dev, graph=graph), wrench, host=True)
+        graphed, eager = roll(stepper(engine, dev, graph=graph), wd), roll(stepper(engine, dev), wd)
+        engine.model.cpu()
+    row["max_abs_diff_m_graph_vs_cpu"] = float((graphed - ref).abs().max())
+    row["max_abs_diff_m_graph_vs_dev_eager"] = float((graphed - eager).abs().max())
+    row["swing_m"] = float((ref - p0).abs().max())
+    row["steps_per_s"] = {k: 1 / v for k, v in t.items()}
+    print(f"surrogate step batch {batch:6d}: " + ", ".join(f"{k} {v * 1e6:.1f} us" for k, v in t.items())
+          + f"; graph - CPU {row['max_abs_diff_m_graph_vs_cpu']:.1e} m, graph - device eager "
+          f"{row['max_abs_diff_m_graph_vs_dev_eager']:.1e} m over {STEP_ROLLOUT} steps (swing {row['swing_m']:.3f} m)")
+    return row
 
 
 if __name__ == "__main__":
