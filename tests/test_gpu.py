@@ -251,7 +251,8 @@ def test_graphed_steppers_on_cuda_equal_the_eager_steps():
     """``Surrogate.stepper(..., graph=True)`` with the shipped mirrored Simulation III model (all four mirror images),
     the same weights with the chord projection after each replay, and the Simulation I model anchored at its circle:
     one replay a step gives the device's eager steps (the same kernels, to 1e-6 of the swing) and so the CPU's to 1e-3
-    of it; two graphed steppers keep apart; the loop at rest in its circle stays there exactly."""
+    of it; two graphed steppers keep apart; ``run_scene`` steps on the model's device, graphed or not; the loop at rest
+    in its circle stays there exactly."""
     from cmlearn.models import NodeLSTMSurrogate
     from cmlearn.surrogate import Surrogate
 
@@ -274,6 +275,16 @@ def test_graphed_steppers_on_cuda_equal_the_eager_steps():
         if CUDA.type == "cuda":
             assert float((out["graph"] - out["eager"]).abs().max()) < 1e-6 * swing
             assert torch.equal(out["graph"], out["graph_b"])
+    # run_scene on the model's device (the printed push: one mirror image), graphed and eager
+    cpu, _ = engine.run_scene(scene)
+    engine.model.to(CUDA)
+    eager, _ = engine.run_scene(scene)
+    graphed, wall = engine.run_scene(scene, graph=CUDA.type == "cuda")
+    engine.model.cpu()
+    swing = float((cpu - cpu[:1]).abs().max())
+    assert eager.device.type == graphed.device.type == CUDA.type and wall > 0 and swing > 1e-4
+    assert float((eager.cpu() - cpu).abs().max()) < 1e-3 * swing
+    assert float((graphed - eager).abs().max()) < 1e-6 * swing
     if CUDA.type == "cuda":
         held = graph_rollouts(loop, replace(loop_scene, loads=replace(loop_scene.loads, force=None)), 20, circle)
         assert torch.equal(held["graph"], circle.expand_as(held["graph"]))

@@ -1174,6 +1174,11 @@ def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
     with pytest.raises(ValueError, match="graph: a CUDA graph needs the model, hist and ref on a CUDA device, got the "
                                          "model on cpu, hist on cpu, ref on cpu"):
         engine.stepper(hist, ref, graph=True)
+    with pytest.raises(ValueError, match="graph: a CUDA graph needs the model"):
+        engine.run_scene(engine.task.base_scene(), duration=0.05, graph=True)
+    magnetic = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt")
+    with pytest.raises(ValueError, match="run_scene: task 'magnetic_rod' runs its own closed loop on the CPU only"):
+        magnetic.run_scene(magnetic.task.base_scene(), duration=0.05, graph=True)
     with pytest.raises(ValueError, match=r"hist must be torch.float32 \(the model's dtype\), got torch.float64"):
         engine.step(hist.double(), wrench, ref)
     with pytest.raises(ValueError, match=r"wrench must be torch.float32 .*, got torch.float64"):

@@ -227,16 +227,27 @@ class Surrogate:
                     W[k] = f[..., idx, :].float()
         return node_wrench(W, self.task.wrench_nodes, self.task.modeled)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the model is (``engine.model.to(device)`` moves it)."""
+        return next(self.model.parameters()).device
+
     @torch.no_grad()
-    def run_scene(self, scene, duration: float | None = None) -> tuple[Tensor, float]:
+    def run_scene(self, scene, duration: float | None = None, graph: bool = False) -> tuple[Tensor, float]:
         """Free-running prediction of the tracked nodes (T, n_tracked, 3), T = steps + 1 (from rest in the
-        scene's initial shape), and the wall time of the rollout including the force evaluation. A task with
-        its own physics (``task.custom``, e.g. the magnetic rod) runs its closed-loop rollout instead.
-        :class:`SurrogateDivergence` where the rollout runs away (:func:`check_rollout`)."""
+        scene's initial shape), on the model's :attr:`device`, and the wall time of the rollout including the force
+        evaluation (on a CUDA device up to its last step's end). ``graph``: each step one CUDA-graph replay
+        (:class:`Stepper`; the model on a CUDA device). A task with its own physics (``task.custom``, e.g. the
+        magnetic rod) runs its closed-loop rollout instead, on the CPU. :class:`SurrogateDivergence` where the rollout
+        runs away (:func:`check_rollout`)."""
         if duration is not None and not duration > 0:
             raise ValueError(f"duration must be a positive time (s) or None for the scene's, got {duration}")
+        dev = self.device
         hook = self.task.hook("run_scene")
         if hook is not None:
+            if dev.type != "cpu" or graph:
+                raise ValueError(f"run_scene: task {self.task.name!r} runs its own closed loop on the CPU only: move "
+                                 f"the model to the CPU (it is on {dev}) and leave graph False")
             check_scene(self.task, scene)
             out = hook(self, scene, duration)
             check_rollout(out[0], self.task, scene.rod.length)
@@ -245,11 +256,14 @@ class Surrogate:
         n = int(round((duration or scene.duration) / self.task.delta))
         t0 = time.perf_counter()
         wrench = self.scene_wrench(scene, n)
+        p0, wrench = p0.to(dev), wrench.to(dev)
         out = [p0]
         with self.symmetric(self._symmetry(p0, wrench)):
-            st = self.stepper(p0[None, None].expand(1, self.eta + 1, -1, -1), p0[None])
+            st = self.stepper(p0[None, None].expand(1, self.eta + 1, -1, -1), p0[None], graph=graph)
             for k in range(n):
                 out.append(st.step(wrench[k][None])[0])
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
         wall = time.perf_counter() - t0
         out = torch.stack(out)
         check_rollout(out, self.task, scene.rod.length)
