@@ -360,22 +360,23 @@ class Stepper:
     def _record(self, zero: Tensor) -> "torch.cuda.CUDAGraph":
         """The CUDA graph of one step from the stepper's states, frames and force buffer ``zero`` (kept as
         ``self._wrench``) that writes the new states and frames back into them and the new frame into ``self._next``.
-        Recorded after three eager steps on a side stream (lazy initialisations, e.g. cuBLAS's workspace, cannot be
-        recorded), from copies, so the rollout itself has not moved."""
+        Recorded on the tensors' device after three eager steps on a side stream (lazy initialisations, e.g. cuBLAS's
+        workspace, cannot be recorded); the states and frames those steps moved are then put back."""
         bufs = (self.state, self.frames)
         saved = [b.clone() for b in bufs]
         self._wrench = zero
-        side = torch.cuda.Stream(device=zero.device)
-        side.wait_stream(torch.cuda.current_stream(zero.device))
-        with torch.cuda.stream(side), torch.no_grad():
-            for _ in range(3):
-                self._graph_body()
-        torch.cuda.current_stream(zero.device).wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph), torch.no_grad():
-            self._next = self._graph_body()
-        for b, s in zip(bufs, saved):  # recording runs nothing: the warm-up steps are what is undone
-            b.copy_(s)
+        with torch.cuda.device(zero.device), torch.no_grad():
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                for _ in range(3):
+                    self._graph_body()
+            torch.cuda.current_stream().wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                self._next = self._graph_body()
+            for b, s in zip(bufs, saved):  # recording runs nothing: only the warm-up steps moved them
+                b.copy_(s)
         return graph
 
     def _graph_body(self) -> Tensor:
