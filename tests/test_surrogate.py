@@ -1176,6 +1176,11 @@ def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
         engine.stepper(hist, ref, graph=True)
     with pytest.raises(ValueError, match="graph: a CUDA graph needs the model"):
         engine.run_scene(engine.task.base_scene(), duration=0.05, graph=True)
+    compiled = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt").compile(gemm_templates=False)
+    compiled.model.to("meta")  # inputs off the CPU, as on a GPU: refused before any compile
+    with pytest.raises(ValueError, match=r"compile\(\): the compiled steps run on the CPU, but the inputs are on "
+                                         r"\['meta'\]"):
+        compiled.stepper(hist.to("meta"), ref.to("meta"))
     magnetic = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt")
     with pytest.raises(ValueError, match="run_scene: task 'magnetic_rod' runs its own closed loop on the CPU only"):
         magnetic.run_scene(magnetic.task.base_scene(), duration=0.05, graph=True)

@@ -204,9 +204,14 @@ class Surrogate:
         """The function ``make(program)`` builds, for inputs shaped as ``args``: in the model's eager form
         (``program`` False) or, after :meth:`compile`, compiled from its ``program=True`` form, once per ``key``
         (what else the function depends on) and input shapes. For a task's own rollout (the magnetic rod's
-        closed loop), which calls it at every step."""
+        closed loop), which calls it at every step. The compiled programs are the CPU's: ValueError for inputs
+        elsewhere (on a CUDA device the eager engine's step is recorded as a graph instead, :class:`Stepper`)."""
         if self._programs is None:
             return make(False)
+        elsewhere = {str(a.device) for a in args if a.device.type != "cpu"}
+        if elsewhere:
+            raise ValueError(f"compile(): the compiled steps run on the CPU, but the inputs are on {sorted(elsewhere)}: "
+                             f"on a CUDA device use an engine that is not compiled, with stepper(..., graph=True)")
         full = (key,) + tuple((a.shape, a.stride(), a.dtype) for a in args)
         prog = self._programs.get(full)
         if prog is None:
