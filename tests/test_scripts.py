@@ -193,6 +193,8 @@ def test_bench_gpu_runs_both_sides_and_compares_them(tmp_path):
                                           "dev_graph_host_round_trip"}
     for r in step:
         assert min(r["s_per_step"].values()) > 0 and r["swing_m"] > 0.01
+        ratio = r["s_per_step"]["cpu_eager"] / r["s_per_step"]["dev_graph"]
+        assert r["graph_speedup_over"]["cpu_eager"] == pytest.approx(ratio, rel=1e-3)
         assert r["max_abs_diff_m_graph_vs_cpu"] == r["max_abs_diff_m_graph_vs_dev_eager"] == 0
 
 

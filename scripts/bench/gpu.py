@@ -300,6 +300,7 @@ def surrogate_step(engine, batch: int, dev: torch.device, window: float, cpu_com
     row["max_abs_diff_m_graph_vs_dev_eager"] = float((graphed - eager).abs().max())
     row["swing_m"] = float((ref - p0).abs().max())
     row["steps_per_s"] = {k: 1 / v for k, v in t.items()}
+    row["graph_speedup_over"] = {k: v / t["dev_graph"] for k, v in t.items() if k != "dev_graph"}
     print(f"surrogate step batch {batch:6d}: " + ", ".join(f"{k} {v * 1e6:.1f} us" for k, v in t.items())
           + f"; graph - CPU {row['max_abs_diff_m_graph_vs_cpu']:.1e} m, graph - device eager "
           f"{row['max_abs_diff_m_graph_vs_dev_eager']:.1e} m over {STEP_ROLLOUT} steps (swing {row['swing_m']:.3f} m)")
