@@ -330,9 +330,9 @@ class Stepper:
     def __init__(self, engine: Surrogate, hist: Tensor, ref: Tensor, graph: bool = False):
         model, E = engine.model, engine.eta
         check_inputs(model, E, hist, ref)
-        if graph and not (hist.is_cuda and ref.is_cuda and next(model.parameters()).is_cuda):
+        if graph and not (hist.is_cuda and ref.is_cuda and engine.device.type == "cuda"):
             raise ValueError(f"graph: a CUDA graph needs the model, hist and ref on a CUDA device, got the model on "
-                             f"{next(model.parameters()).device}, hist on {hist.device}, ref on {ref.device}")
+                             f"{engine.device}, hist on {hist.device}, ref on {ref.device}")
         self.model, self.ref, self.axes = model, ref, model.symmetry_axes
         B, K = hist.shape[0], model.idx_modeled.numel()
         # h and c in one tensor (2, eta + 1, G * B * K, hidden): an input and an output fewer, 0.5 us of a 64 us step
