@@ -7,13 +7,15 @@ import argparse
 import math
 from dataclasses import field, fields
 
-__all__ = ["opt", "dataclass_parser", "bounded"]
+__all__ = ["opt", "dataclass_parser", "bounded", "writable"]
 
 
-def opt(default, help: str, choices=None, at_least=None, above=None):
-    """A dataclass field whose ``help`` is the argument's ``--help`` text, ``choices`` its valid values and
-    ``at_least`` / ``above`` its lower bound (inclusive / exclusive), checked as the command line is parsed."""
-    return field(default=default, metadata={"help": help, "choices": choices, "at_least": at_least, "above": above})
+def opt(default, help: str, choices=None, at_least=None, above=None, path: str | None = None):
+    """A dataclass field whose ``help`` is the argument's ``--help`` text, ``choices`` its valid values,
+    ``at_least`` / ``above`` its lower bound (inclusive / exclusive) and ``path`` ("file" or "folder") an output
+    the run writes (:func:`writable`), checked as the command line is parsed."""
+    return field(default=default, metadata={"help": help, "choices": choices, "at_least": at_least, "above": above,
+                                            "path": path})
 
 
 def bounded(kind, at_least=None, above=None):
@@ -34,6 +36,21 @@ def bounded(kind, at_least=None, above=None):
     return convert
 
 
+def writable(folder: bool = False, kind=str):
+    """An argparse ``type``: an output file (or ``folder``) the run will write, as ``kind`` of the text, checked
+    by :func:`cmlearn.io.check_writable` as the command line is parsed (before hours of training end in an
+    unwritable path); the empty text (the script's default path) passes unchecked."""
+    def convert(text: str):
+        if text:
+            from .io import check_writable
+            try:
+                check_writable(text, folder)
+            except ValueError as e:
+                raise argparse.ArgumentTypeError(str(e)) from None
+        return kind(text)
+    return convert
+
+
 def dataclass_parser(cls, description: str) -> argparse.ArgumentParser:
     """An argument parser with one flag per field of the dataclass ``cls`` (fields made by :func:`opt`)."""
     ap = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -45,5 +62,7 @@ def dataclass_parser(cls, description: str) -> argparse.ArgumentParser:
         kind = type(f.default)
         if kind in (int, float):
             kind = bounded(kind, meta.get("at_least"), meta.get("above"))
+        elif meta.get("path"):
+            kind = writable(meta["path"] == "folder")
         ap.add_argument(flag, type=kind, default=f.default, help=meta["help"], choices=meta["choices"])
     return ap

@@ -9,8 +9,8 @@ import tempfile
 from pathlib import Path
 from typing import BinaryIO, Callable
 
-__all__ = ["atomic_write", "write_text_atomic", "save_torch_atomic", "CheckpointError", "weights_digest",
-           "header_digest", "seal", "check_digests"]
+__all__ = ["atomic_write", "write_text_atomic", "save_torch_atomic", "check_writable", "CheckpointError",
+           "weights_digest", "header_digest", "seal", "check_digests"]
 
 
 class CheckpointError(ValueError):
@@ -55,6 +55,30 @@ def check_digests(path: str | Path, blob: dict) -> None:
     if want is not None and header_digest(blob) != want:
         raise CheckpointError(f"{path}: the configuration or metadata do not match their stored SHA-256: the file "
                               "is corrupt")
+
+
+def check_writable(path: str | Path, folder: bool = False) -> Path:
+    """``path`` (a file, or with ``folder`` a folder) as a :class:`~pathlib.Path` if it can be written there,
+    checked before a long run so that it does not fail only at its end; otherwise :class:`ValueError` saying why.
+    Nothing is left behind: a temporary file is made and removed in the nearest folder that exists, which a
+    missing folder would be made in."""
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise ValueError(f"{str(path)!r} is a file, not a folder")
+    if not folder and path.is_dir():
+        raise ValueError(f"{str(path)!r} is a folder, not a file")
+    near = path if folder else path.parent
+    while not near.exists() and near != near.parent:
+        near = near.parent
+    if not near.is_dir():
+        raise ValueError(f"cannot write {str(path)!r}: {str(near)!r} is a file, not a folder")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=near, prefix=".cmlearn-write-check.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise ValueError(f"cannot write {str(path)!r}: {e.strerror or e} in {str(near)!r}") from None
+    return path
 
 
 def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:

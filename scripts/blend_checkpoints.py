@@ -24,7 +24,7 @@ import sys
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
 from cmlearn.surrogate.checkpoint import provenance
@@ -41,14 +41,14 @@ def parse(argv=None) -> argparse.Namespace:
                     help="variants of the evaluation data (0: A's own)")
     ap.add_argument("--seed", type=bounded(int, at_least=0), default=None,
                     help="the evaluation data's seed (default: A's own)")
-    ap.add_argument("--data-dir", default="data", help="where the LGVI runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the LGVI runs are cached")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds (0: the scene's own)")
     ap.add_argument("--val-seed", type=bounded(int, at_least=0), default=None,
                     help="also score A, B and the blend on fresh variants")
     ap.add_argument("--val-variants", type=bounded(int, at_least=1), default=16, help="fresh variants --val-seed draws")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", required=True, help="the blended checkpoint (.pt)")
+    ap.add_argument("--out", type=writable(), required=True, help="the blended checkpoint (.pt)")
     a = ap.parse_args(argv)
     if not 0.0 <= a.alpha <= 1.0:
         ap.error(f"--alpha must be in [0, 1], got {a.alpha}")

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 
 
 @dataclass
@@ -65,6 +65,8 @@ def parse(argv=None) -> Args:
             ap.add_argument(flag, dest=f.name, action="store_true")
         else:
             kind = {"int": bounded(int), "float": bounded(float)}.get(f.type, str)
+            if f.name in ("out", "report"):  # the results' folder, the table's copy
+                kind = writable(folder=f.name == "out")
             ap.add_argument(flag, dest=f.name, type=kind, default=f.default)
     a = Args(**vars(ap.parse_args(argv)))
     if a.quick:

@@ -21,7 +21,7 @@ import json
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -41,11 +41,11 @@ def main(argv=None) -> dict:
                     help="the fresh variants' seed (not one a checkpoint was trained "
                     "or selected on: train_surrogate's defaults are 0 and, with --val-fresh, 1)")
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=4, help="fresh trajectories to rank on")
-    ap.add_argument("--data-dir", default="data", help="where the fresh variants' LGVI runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the fresh variants' LGVI runs are cached")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds (0: the scene's own)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=2, help="torch CPU threads")
-    ap.add_argument("--out", default="", help="also write the table to this markdown file")
+    ap.add_argument("--out", type=writable(), default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     loaded = [(path, *load_checkpoint(path)) for path in a.checkpoints]

@@ -31,7 +31,7 @@ import time
 import torch
 from torch.utils.data import default_collate
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
@@ -47,7 +47,7 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=96,
                     help="variants of the checkpoint's training data")
     ap.add_argument("--seed", type=bounded(int, at_least=0), default=0, help="the data's seed")
-    ap.add_argument("--data-dir", default="data", help="where the LGVI runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the LGVI runs are cached")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds (0: the scene's own)")
     ap.add_argument("--keep-scales", action="store_true", help="accept data other than the checkpoint's own")
@@ -72,7 +72,7 @@ def parse(argv=None) -> argparse.Namespace:
                     help="score the fresh variants at every n-th evaluation")
     ap.add_argument("--device", default="cpu", help="torch device of the refinement (cpu, cuda, cuda:1, ...)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", required=True, help="the refined checkpoint (.pt)")
+    ap.add_argument("--out", type=writable(), required=True, help="the refined checkpoint (.pt)")
     a = ap.parse_args(argv)
     if a.val_seed is not None and a.val_seed == a.seed:
         ap.error(f"--val-seed {a.val_seed} is the data's --seed: its variants are trained on")

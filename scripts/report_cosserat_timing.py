@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from physics.scenes_cosserat import LinearField, paper2_magnetic_rod
 
 THESIS_HZ = (8.33, 50.0)
@@ -86,7 +86,7 @@ def main(argv=None):
     ap.add_argument("--no-compile", dest="compile", action="store_false")
     ap.add_argument("--reps", type=bounded(int, at_least=1), default=None)
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=Args.threads)
-    ap.add_argument("--out", default=Args.out)
+    ap.add_argument("--out", type=writable(), default=Args.out)
     args = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(args.threads)
     reps = args.reps or (2 if args.quick else 20)

@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.io import write_text_atomic
 from physics.magnetics import CoilFieldTable, six_coil_emns
 
@@ -95,7 +95,7 @@ def to_markdown(rows, radii, exact_us: float, n_dirs: int, cmd: str) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default="docs/field_table.md")
+    ap.add_argument("--out", type=writable(), default="docs/field_table.md")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     a = Args(**vars(ap.parse_args(argv)))
     torch.set_num_threads(a.threads)

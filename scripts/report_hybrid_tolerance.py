@@ -24,7 +24,7 @@ from statistics import median
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task, reference_rollout
 from cmlearn.io import write_text_atomic
@@ -71,8 +71,8 @@ def main(argv=None):
                     help="seconds of the scene (default all of it)")
     ap.add_argument("--eager", action="store_true", help="the eager stepper (the exact coil model) instead")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
-    ap.add_argument("--data-dir", default="data", help="where the LGVI's run is cached")
-    ap.add_argument("--out", default="", help="markdown file for the table")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the LGVI's run is cached")
+    ap.add_argument("--out", type=writable(), default="", help="markdown file for the table")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from cmlearn.args import writable
 from cmlearn.io import write_text_atomic
 from physics import LGVI, CircularSection, Loads, Material, Rod
 from physics.elastic import node_frame_strains, relative_cayley
@@ -62,7 +63,7 @@ def time_order(quick: bool):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=Args.out)
+    ap.add_argument("--out", type=writable(), default=Args.out)
     args = Args(**vars(ap.parse_args(argv)))
     Ns = (5, 10, 20) if args.quick else (5, 10, 15, 20, 40, 80)
     lines = ["# LGVI convergence", "", "First clamped-free bending frequency of the linearised discrete model "

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data.generate import scene_rollout
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
@@ -46,7 +46,7 @@ def main(argv=None):
     ap.add_argument("--scales", type=bounded(float), nargs="+", default=[0.25, 0.5, 1.0, 1.5])
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0, help="shorter than the scene (tests)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
-    ap.add_argument("--out", default="")
+    ap.add_argument("--out", type=writable(), default="")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     engines = {Path(p).name: Surrogate.load(p) for p in a.checkpoints}

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -89,9 +89,9 @@ def main(argv=None) -> dict:
                     help="simulated seconds (0: the scene's 50 s)")
     ap.add_argument("--after", type=bounded(float, at_least=0), default=10.0,
                     help="seconds left out before the range and mean")
-    ap.add_argument("--data-dir", default="data", help="where the LGVI runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the LGVI runs are cached")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", default="", help="also write the tables to this markdown file")
+    ap.add_argument("--out", type=writable(), default="", help="also write the tables to this markdown file")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     task = get_task("ellipse")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import get_task
 from cmlearn.data.generate import simulate_task
 from cmlearn.data.windows import split_ranges
@@ -72,7 +72,7 @@ def main(argv=None):
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=32)
     ap.add_argument("--history", type=bounded(int, at_least=1), nargs="+", default=[3, 6])
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=2)
-    ap.add_argument("--out", default=str(ROOT / "docs" / "node_density.md"))
+    ap.add_argument("--out", type=writable(), default=str(ROOT / "docs" / "node_density.md"))
     a = ap.parse_args(argv)
     if a.variants < 2:
         raise ValueError(f"--variants must be >= 2 (the printed scene and at least one to fit on), got {a.variants}")

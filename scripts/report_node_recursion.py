@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import get_task, scene_rollout
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
@@ -72,7 +72,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds of every scene (0: their own)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", default="", help="also write the table to this markdown file")
+    ap.add_argument("--out", type=writable(), default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     lines = ["Node of interest, max, mean absolute error (mm) x / y / z; chords: the free-running rollout's largest "

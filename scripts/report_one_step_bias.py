@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data.generate import scene_rollout
 from cmlearn.data.windows import split_ranges
 from cmlearn.io import write_text_atomic
@@ -94,7 +94,7 @@ def main(argv=None):
     ap.add_argument("--window", type=bounded(int, at_least=1), default=20)
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="shorter printed scene (s), for smoke runs")
-    ap.add_argument("--out", default="docs/one_step_bias.md")
+    ap.add_argument("--out", type=writable(), default="docs/one_step_bias.md")
     a = ap.parse_args(argv)
     if a.window < 1:
         raise ValueError(f"--window must be >= 1, got {a.window}")

@@ -32,6 +32,7 @@ from pathlib import Path
 import torch
 from scipy.signal import butter, filtfilt
 
+from cmlearn.args import writable
 from cmlearn.data import get_task
 from cmlearn.eval.metrics import axis_errors
 from cmlearn.io import write_text_atomic
@@ -195,7 +196,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tasks", nargs="+", default=Args().tasks)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=Args.out)
+    ap.add_argument("--out", type=writable(), default=Args.out)
     a = Args(**vars(ap.parse_args(argv)))
     valid = Args().tasks
     unknown = [t for t in a.tasks if t not in valid]

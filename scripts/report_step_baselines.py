@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import cached_dataset
 from cmlearn.data.magnetic import magnet_frames
 from cmlearn.data.windows import node_wrench, split_ranges
@@ -144,9 +144,9 @@ def main(argv=None):
     ap.add_argument("--ridge", type=bounded(float, at_least=0), default=1e-6,
                     help="the linear fits' ridge (standardised features)")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0, help="shorter trajectories (tests)")
-    ap.add_argument("--data-dir", default="data", help="where datasets and LGVI reference runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where datasets and LGVI reference runs are cached")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
-    ap.add_argument("--out", default="")
+    ap.add_argument("--out", type=writable(), default="")
     a = ap.parse_args(argv)
     if a.variants == 1:
         ap.error(f"--variants must be >= 2 (the printed trajectory and others) or 0, got {a.variants}")

@@ -15,6 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
+from cmlearn.args import writable
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import surrogate_checkpoints
 from cmlearn.surrogate.evaluate import thesis_errors
@@ -90,7 +91,7 @@ def rows(checkpoints):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="docs/surrogates.md")
+    ap.add_argument("--out", type=writable(), default="docs/surrogates.md")
     ap.add_argument("--checkpoints", default=str(ROOT / "checkpoints"))
     a = ap.parse_args(argv)
     cks = surrogate_checkpoints(a.checkpoints)

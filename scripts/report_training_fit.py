@@ -22,7 +22,7 @@ import json
 import torch
 from torch import Tensor
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.io import write_text_atomic
@@ -65,14 +65,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=bounded(int, at_least=1), default=80,
                     help="free-running steps per window (the printed scene's "
                     "test part of Simulation III has 80)")
-    ap.add_argument("--data-dir", default="data", help="where the checkpoints' datasets are read or made")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the checkpoints' datasets are read or made")
     ap.add_argument("--variants", type=bounded(int, at_least=0), default=0,
                     help="trajectories of the dataset (0: the checkpoint's own; "
                     "another number makes another dataset, for quick checks)")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds (0: the checkpoint's own)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", default="", help="also write the table to this markdown file")
+    ap.add_argument("--out", type=writable(), default="", help="also write the table to this markdown file")
     a = ap.parse_args(argv)
     if a.variants == 1:
         ap.error("--variants must be 0 or >= 2, got 1")

@@ -23,7 +23,7 @@ import shlex
 import sys
 from dataclasses import fields
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.rl.agent import load_agent, save_agent
 from cmlearn.rl.training import AgentTrainConfig, config_from_args, train_agent
 
@@ -38,10 +38,11 @@ def parse(argv=None):
             ap.add_argument(flag, action="store_true", default=f.default)
         else:
             kind = type(f.default)
-            ap.add_argument(flag, type=bounded(kind) if kind in (int, float) else kind, default=f.default)
+            kind = bounded(kind) if kind in (int, float) else writable(folder=True) if f.name == "out" else kind
+            ap.add_argument(flag, type=kind, default=f.default)
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--quick", action="store_true", help="smoke-test budget")
-    ap.add_argument("--ship", default="", help="copy the final agent checkpoint here")
+    ap.add_argument("--ship", type=writable(), default="", help="copy the final agent checkpoint here")
     ap.add_argument("--ship-best", action="store_true",
                     help="with --ship: copy the agent of the best periodic evaluation instead of the final one")
     ns = ap.parse_args(argv)

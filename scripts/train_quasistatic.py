@@ -54,12 +54,12 @@ class Args:
                           "errors of the snap-throughs more)", ("l1", "l2"))
     patience: int = opt(10, "epochs without a better validation loss before stopping", at_least=1)
     threads: int = opt(1, "torch CPU threads", at_least=1)
-    data_dir: str = opt("data", "where datasets and static tracks are cached")
-    log_dir: str = opt("logs", "Lightning CSV logs")
+    data_dir: str = opt("data", "where datasets and static tracks are cached", path="folder")
+    log_dir: str = opt("logs", "Lightning CSV logs", path="folder")
     fresh: int = opt(0, "also score the model from rest on this many random profiles of --fresh-seed, never trained "
                         "on (0: none)", at_least=0)
     fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)", at_least=0)
-    out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)")
+    out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)", path="file")
     resume: str = opt("", "a Lightning checkpoint to resume")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
                              "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may "

@@ -115,11 +115,12 @@ class Args:
                             at_least=0)
     keep_top_k: int = opt(1, "Lightning checkpoints kept by the selection metric (-1: every epoch)", at_least=-1)
     threads: int = opt(2, "torch CPU threads", at_least=1)
-    data_dir: str = opt("data", "where datasets and the LGVI runs of the evaluated scenes are generated and cached")
+    data_dir: str = opt("data", "where datasets and the LGVI runs of the evaluated scenes are generated and cached",
+                        path="folder")
     compile_data: bool = opt(False, "generate a missing dataset with the LGVI's compiled rollout (its program compiled "
                                     "ahead of time; equal to the eager LGVI to round-off; not for the magnetic rod)")
-    out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)")
-    log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints")
+    out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)", path="file")
+    log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints", path="folder")
     resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues")
     init_from: str = opt("", "a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)")
     keep_scales: bool = opt(False, "with --init-from, keep the checkpoint's input and output scales where this run's "

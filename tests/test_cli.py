@@ -82,6 +82,15 @@ def test_bad_arguments_exit_nonzero(args):
     assert exc.value.code == 2
 
 
+@pytest.mark.parametrize("command", ["simulate", "compare"])
+def test_an_unwritable_output_folder_is_refused_before_the_run(command, tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--out", str(tmp_path / "f" / "plots")])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "argument --out: cannot write" in err and "is a file, not a folder" in err
+
+
 def test_solver_failure_is_reported(tmp_path, capsys, monkeypatch):
     import cmlearn.cli as cli
     from physics.errors import SolverError

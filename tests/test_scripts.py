@@ -52,10 +52,15 @@ def parse_fails(script: str, argv: list[str], msg: str, capsys) -> None:
 SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (ROOT / "scripts").rglob("*.py"))
 
 
+#: the options through which a script writes its results (files or folders)
+OUTPUTS = ("out", "data_dir", "log_dir", "ship", "report")
+
+
 @pytest.mark.parametrize("name", SCRIPTS)
-def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, monkeypatch, capsys):
+def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, monkeypatch, capsys, tmp_path):
     """Each script's parser (caught as ``main([])`` parses, before any work): no option is a plain int or float, and
-    each number option refuses 'nan' with argparse's usage error naming the flag."""
+    each number option refuses 'nan' with argparse's usage error naming the flag; each output path (``--out``,
+    ``--data-dir``, ``--log-dir``, ``--ship``, ``--report``) is refused there when it lies under a file."""
     import argparse
 
     class Parsed(Exception):
@@ -82,6 +87,14 @@ def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, m
             err = capsys.readouterr().err
             assert e.value.code == 2 and f"argument {flag}: must be" in err, err[-300:]
             checked += 1
+        if act.dest in OUTPUTS:
+            assert getattr(act.type, "__qualname__", "").startswith("writable."), f"{name} {flag}: unchecked path"
+            (tmp_path / "a_file").write_text("")
+            with pytest.raises(SystemExit) as e:
+                ap.parse_args([flag, str(tmp_path / "a_file" / "x")])
+            err = capsys.readouterr().err
+            assert e.value.code == 2 and f"argument {flag}: cannot write" in err and "is a file" in err, err[-300:]
+            assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
     assert checked or name in ("report_agent", "report_lgvi_convergence", "report_rollout_sensitivity",
                                "report_surrogates"), f"{name}: no number option found"
 

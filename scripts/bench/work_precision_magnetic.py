@@ -34,7 +34,7 @@ from statistics import median
 import torch
 from work_precision import timed_rows
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, writable
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
 from cmlearn.data.generate import lgvi_frames
@@ -117,7 +117,7 @@ def main(argv=None):
     ap.add_argument("--eager", action="store_true", help="every model eager")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0, help="timing rounds (default 3, --quick 1)")
-    ap.add_argument("--out", default="", help="folder for the table (.md)")
+    ap.add_argument("--out", type=writable(folder=True), default="", help="folder for the table (.md)")
     a = ap.parse_args(argv)
     rounds = a.rounds or (1 if a.quick else 3)
     torch.set_num_threads(a.threads)
