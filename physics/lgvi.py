@@ -467,9 +467,13 @@ class LGVI:
         if (n_steps is None) == (duration is None):
             raise ValueError("simulate: give exactly one of n_steps or duration")
         if n_steps is None:
-            n_steps = int(round(duration / self.dt))
-        if n_steps < 0 or record_every < 1:
-            raise ValueError("simulate: n_steps must be >= 0 and record_every >= 1")
+            if not (math.isfinite(float(duration)) and float(duration) >= 0):
+                raise ValueError(f"simulate: duration must be a finite time >= 0 (s), got {duration!r}")
+            n_steps = int(round(float(duration) / self.dt))
+        if n_steps < 0:
+            raise ValueError(f"simulate: n_steps must be >= 0, got {n_steps!r}")
+        if record_every < 1:
+            raise ValueError(f"simulate: record_every must be >= 1, got {record_every!r}")
         ts, ps, Rs, Es = [state.t], [state.p], [state.R] if record_R else None, []
         if record_energy:
             Es.append(self.energy(state))

@@ -371,6 +371,12 @@ def test_input_validation():
         sim.initial_state(R=2 * torch.eye(3, dtype=D).expand(5, 3, 3))
     with pytest.raises(ValueError, match="finite"):
         sim.initial_state(p=torch.full((5, 3), float("nan"), dtype=D))
+    for kw, msg in (({"duration": -1.0}, "duration must be a finite time >= 0"),
+                    ({"duration": float("nan")}, "duration must be"), ({"n_steps": -2}, "n_steps must be >= 0"),
+                    ({"n_steps": 3, "record_every": 0}, "record_every must be >= 1, got 0"),
+                    ({"n_steps": 3, "duration": 1.0}, "exactly one of n_steps or duration")):
+        with pytest.raises(ValueError, match=msg):
+            sim.simulate(sim.initial_state(), **kw)
     for g in ((0.0, 1.0), (0.0, float("nan"), 0.0)):
         with pytest.raises(ValueError, match=r"Loads.gravity must be a finite 3-vector"):
             LGVI(rod, dt=1e-5, loads=Loads(gravity=g))
