@@ -309,8 +309,21 @@ def test_bad_inputs(tmp_path):
         MagneticParticleEnv(colour="red")
     for kw, msg in (({"map_size": (0.4, 0.0)}, "map_size must be two finite lengths > 0"),
                     ({"obstacle_threshold": 300.0}, r"obstacle_threshold .* must be in \[0, 255\]"),
-                    ({"min_start_goal_distance": -0.1}, "min_start_goal_distance must be finite and >= 0")):
+                    ({"min_start_goal_distance": -0.1}, "min_start_goal_distance must be finite and >= 0"),
+                    ({"tool_length": -0.06}, "tool_length must be finite and > 0"),
+                    ({"step_penalty": float("nan")}, "step_penalty must be finite"),
+                    ({"max_steps": 2.5}, "max_steps must be an integer >= 1, got 2.5"),
+                    ({"sc1_max_steps": 0}, "sc1_max_steps must be an integer >= 1")):
         with pytest.raises(ValueError, match=msg):
             MagneticParticleEnv(**kw)
-    with pytest.raises(ValueError, match="probability"):
-        DisturbanceConfig(probability=2.0)
+    for kw, msg in (({"disturbance": 0.03}, "disturbance must be a DisturbanceConfig, got 0.03"),
+                    ({"camera": None}, "camera must be a CameraSpec"),
+                    ({"switching": 1}, "switching must be a SwitchingConfig or NoneType")):
+        with pytest.raises(TypeError, match=msg):
+            MagneticParticleEnv(**kw)
+    for kw, msg in (({"probability": 2.0}, "probability"), ({"magnitude": (0.1,)}, "magnitude must be"),
+                    ({"max_count": -1}, "max_count must be an integer >= 0"),
+                    ({"min_step": 1.5}, "min_step must be an integer >= 0"),
+                    ({"at_steps": (3, -1)}, r"at_steps must be step numbers")):
+        with pytest.raises(ValueError, match=msg):
+            DisturbanceConfig(**kw)

@@ -65,6 +65,11 @@ __all__ = ["EnvConfig", "DisturbanceConfig", "MagneticParticleEnv", "ACTIONS"]
 ACTIONS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))  # +x, -x, +y, -y
 
 
+def _count(v) -> bool:
+    """``v`` is an integer >= 0 (a bool is not)."""
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0
+
+
 @dataclass(frozen=True)
 class DisturbanceConfig:
     probability: float = 0.0
@@ -76,8 +81,14 @@ class DisturbanceConfig:
     def __post_init__(self):
         if not 0.0 <= self.probability <= 1.0:
             raise ValueError(f"probability must be in [0, 1], got {self.probability}")
-        if not (0 < self.magnitude[0] <= self.magnitude[1]):
-            raise ValueError(f"magnitude must be (min, max) with 0 < min <= max (m), got {self.magnitude}")
+        m = self.magnitude
+        if not (len(m) == 2 and all(math.isfinite(v) for v in m) and 0 < m[0] <= m[1]):
+            raise ValueError(f"magnitude must be (min, max) with 0 < min <= max (m), got {m}")
+        for name in ("max_count", "min_step"):
+            if not _count(getattr(self, name)):
+                raise ValueError(f"{name} must be an integer >= 0, got {getattr(self, name)!r}")
+        if not all(_count(k) for k in self.at_steps):
+            raise ValueError(f"at_steps must be step numbers (integers >= 0), got {self.at_steps!r}")
 
     @property
     def active(self) -> bool:
@@ -112,12 +123,21 @@ class EnvConfig:
     camera: CameraSpec = field(default_factory=CameraSpec)
 
     def __post_init__(self):
-        for name in ("action_step", "control_period", "goal_radius", "map_resolution"):
+        for name, kind in (("disturbance", DisturbanceConfig), ("particle", ParticleParams), ("camera", CameraSpec),
+                           ("switching", (SwitchingConfig, type(None)))):
+            if not isinstance(getattr(self, name), kind):
+                want = " or ".join(k.__name__ for k in (kind if isinstance(kind, tuple) else (kind,)))
+                raise TypeError(f"{name} must be a {want}, got {getattr(self, name)!r}")
+        for name in ("action_step", "control_period", "goal_radius", "map_resolution", "tool_length"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
-        if int(self.max_steps) < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        for name in ("reward_success", "reward_failure", "step_penalty", "shaping"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be finite, got {getattr(self, name)}")
+        for name in ("max_steps", "sc1_max_steps"):
+            if not (_count(getattr(self, name)) and getattr(self, name) >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {getattr(self, name)!r}")
         if len(self.map_size) != 2 or not all(math.isfinite(v) and v > 0 for v in self.map_size):
             raise ValueError(f"map_size must be two finite lengths > 0 (m), got {self.map_size!r}")
         if not 0 <= self.obstacle_threshold <= 255:
