@@ -1317,6 +1317,9 @@ def test_notebook_executes_on_a_short_case(monkeypatch):
     assert not [o for o in outputs if o.get("output_type") == "error"]
     assert any("speed-up" in str(o.get("data", {})) for o in outputs)
     assert any("quasi-static hybrid" in str(o.get("data", {})) for o in outputs)  # the magnetic rod's models
+    # the error plots are shown: one figure per scene run (each checkpoint's printed scene when quick)
+    runs = sum(o.get("text", "").count(", surrogate ") for o in outputs if o.get("output_type") == "stream")
+    assert runs >= 5 and sum("image/png" in o.get("data", {}) for o in outputs) == runs
 
 
 def test_the_rest_output_is_not_reused_for_a_new_reference_at_a_freed_ones_address():
