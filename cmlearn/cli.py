@@ -144,15 +144,14 @@ def run_scene(scene, duration: float | None = None, dtype: str = "float64", reco
 
 def _plots(scene, summary: dict, out: Path) -> list[Path]:
     import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.figure import Figure  # no pyplot: a library call leaves the caller's backend alone
 
     t, p = summary["_t"], summary["_p"] * 1e3
     paths = [out / "tip_trajectory.png", out / "shapes.png"]
 
-    fig, axes = plt.subplots(3, 1, sharex=True, figsize=(7, 6.5))
+    fig = Figure(figsize=(7, 6.5))
+    axes = fig.subplots(3, 1, sharex=True)
     for node, label in zip(scene.nodes_of_interest, scene.node_labels):
         for k, ax in enumerate(axes):
             ax.plot(t, p[:, node, k], label=f"{label} (node {node})")
@@ -164,14 +163,14 @@ def _plots(scene, summary: dict, out: Path) -> list[Path]:
     axes[-1].set_xlabel("t (s)")
     fig.tight_layout()
     atomic_write(paths[0], lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
 
     span = p.reshape(-1, 3).max(0) - p.reshape(-1, 3).min(0)
     order = np.argsort(span)[::-1].tolist()  # axes by decreasing extent
     views = [tuple(sorted(order[:2])), tuple(sorted((order[0], order[2])))]  # main plane, then the third axis
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.8))
+    fig = Figure(figsize=(12, 5.8))
+    axes = fig.subplots(1, 2)
     picks = np.unique(np.linspace(0, len(t) - 1, min(9, len(t))).round().astype(int))
-    cmap = plt.get_cmap("viridis")
+    cmap = matplotlib.colormaps["viridis"]
     node = scene.nodes_of_interest[0]
     for ax, (i, j) in zip(axes, views):
         for c, k in enumerate(picks):
@@ -187,7 +186,6 @@ def _plots(scene, summary: dict, out: Path) -> list[Path]:
     fig.suptitle(f"{scene.name}: shape snapshots (squares and dotted path: {scene.node_labels[0]})")
     fig.tight_layout()
     atomic_write(paths[1], lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
     return paths
 
 

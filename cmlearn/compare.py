@@ -127,16 +127,15 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
 
 
 def _plots(res: dict, out: Path) -> list[Path]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: a library call leaves the caller's backend alone
 
     from .eval.metrics import rmse_t
 
     s = res["_series"]
     t, ref, sur, slot = s["t"].numpy(), s["ref"], s["sur"], s["slots"][0]
     paths = [out / "positions.png", out / "rmse.png", out / "shapes.png"]
-    fig, axes = plt.subplots(3, 1, figsize=(7, 6), sharex=True)
+    fig = Figure(figsize=(7, 6))
+    axes = fig.subplots(3, 1, sharex=True)
     for i, ax in enumerate(axes):
         ax.plot(t, ref[:, slot, i].numpy() * 1e3, "k-", label="LGVI (physics)")
         ax.plot(t, sur[:, slot, i].numpy() * 1e3, "r--", label="LSTM surrogate")
@@ -146,8 +145,8 @@ def _plots(res: dict, out: Path) -> list[Path]:
     axes[-1].set_xlabel("t (s)")
     fig.tight_layout()
     atomic_write(paths[0], lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(7, 3))
+    fig = Figure(figsize=(7, 3))
+    ax = fig.subplots()
     for j, lab in zip(s["slots"], s["labels"]):
         ax.plot(t, rmse_t(sur[:, j], ref[:, j]).numpy() * 1e3, label=lab)
     ax.set_xlabel("t (s)")
@@ -155,15 +154,16 @@ def _plots(res: dict, out: Path) -> list[Path]:
     ax.legend(loc="best")
     fig.tight_layout()
     atomic_write(paths[1], lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
-    fig = plt.figure(figsize=(6, 5))
+    fig = Figure(figsize=(6, 5))
     ax = fig.add_subplot(projection="3d")
     for k in range(0, len(t), max(1, len(t) // 5)):
         ax.plot(*ref[k].T.numpy(), "k-", lw=1)
         ax.plot(*sur[k].T.numpy(), "r--", lw=1)
     ax.set_title("tracked nodes: LGVI (black) and surrogate (red)")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
     atomic_write(paths[2], lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
     return paths
 
 

@@ -37,8 +37,14 @@ def test_scenes_lists_every_scene(capsys):
 
 
 def test_simulate_default_scene(tmp_path, capsys):
-    out = tmp_path / "sim"
-    assert main(["simulate", "--duration", "0.009", "--out", str(out)]) == 0
+    import matplotlib
+    out, backend = tmp_path / "sim", matplotlib.get_backend()
+    matplotlib.use("svg")  # the caller's backend (a notebook's inline one), which the plots must leave alone
+    try:
+        assert main(["simulate", "--duration", "0.009", "--out", str(out)]) == 0
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(backend)
     text = capsys.readouterr().out
     for key in ("wall time", "real-time factor", "energy: relative drift", "Newton:", "position (mm)"):
         assert key in text

@@ -346,7 +346,14 @@ def test_shipped_checkpoint_reproduces_its_check_and_compare_prints_degrees(tmp_
     assert set(m) == {"seen_last40", "magnetic_rod_heldout"}
     for case in m.values():
         assert set(case["orientation_deg"]) == {"one_step", "free_running", "cosserat"}
-    summary = run_compare("magnetic_rod_heldout", duration=0.1, out=tmp_path, compile=True)
+    import matplotlib
+    backend = matplotlib.get_backend()
+    matplotlib.use("svg")  # the caller's backend (a notebook's inline one), which the plots must leave alone
+    try:
+        summary = run_compare("magnetic_rod_heldout", duration=0.1, out=tmp_path, compile=True)
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(backend)
     out = capsys.readouterr().out
     assert "distal magnet orientation: about x max" in out and "deg" in out and "static Cosserat" in out
     assert "hybrid distal magnet orientation" in out and "quasi-static hybrid" in out  # the shipped hybrid too
