@@ -49,7 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_sim.add_argument("--scene", default=DEFAULT_SCENE, help=f"scene name (default {DEFAULT_SCENE})")
     p_sim.add_argument("--duration", type=bounded(float, above=0), default=None,
                        help="simulated seconds (default: the scene's duration)")
-    p_sim.add_argument("--out", type=writable(folder=True, kind=Path), default=None, help="output folder (default ./out/simulate_<scene>)")
+    p_sim.add_argument("--out", type=writable(folder=True, kind=Path), default=None,
+                       help="output folder (default ./out/simulate_<scene>)")
     p_sim.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="floating-point type")
     p_sim.add_argument("--record-every", type=bounded(int, at_least=1), default=None,
                        help=f"record every K-th step (default: about {_FRAMES} frames)")
@@ -61,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--scene", default=DEFAULT_COMPARE_SCENE, help=f"scene (default {DEFAULT_COMPARE_SCENE})")
     p_cmp.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default checkpoints/<task>.pt)")
     p_cmp.add_argument("--duration", type=bounded(float, above=0), default=None, help="simulated seconds")
-    p_cmp.add_argument("--out", type=writable(folder=True, kind=Path), default=None, help="output folder (default ./out/compare_<scene>)")
+    p_cmp.add_argument("--out", type=writable(folder=True, kind=Path), default=None,
+                       help="output folder (default ./out/compare_<scene>)")
     p_cmp.add_argument("--compile", action="store_true",
                        help="compile the surrogate's step and the LGVI ahead of time (tens of seconds each, timed "
                             "apart) and time their compiled rollouts")

@@ -41,7 +41,8 @@ def main(argv=None) -> dict:
                     help="the fresh variants' seed (not one a checkpoint was trained "
                     "or selected on: train_surrogate's defaults are 0 and, with --val-fresh, 1)")
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=4, help="fresh trajectories to rank on")
-    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the fresh variants' LGVI runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data",
+                    help="where the fresh variants' LGVI runs are cached")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds (0: the scene's own)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=2, help="torch CPU threads")

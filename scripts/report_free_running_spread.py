@@ -59,7 +59,8 @@ def main(argv=None):
                     help="relative current changes for the LGVI's own spread (none: skip it)")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="shorter than the profiles (tests)")
-    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the LGVI reference runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data",
+                    help="where the LGVI reference runs are cached")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", type=writable(), default="")
     a = ap.parse_args(argv)

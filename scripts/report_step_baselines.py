@@ -144,7 +144,8 @@ def main(argv=None):
     ap.add_argument("--ridge", type=bounded(float, at_least=0), default=1e-6,
                     help="the linear fits' ridge (standardised features)")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0, help="shorter trajectories (tests)")
-    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where datasets and LGVI reference runs are cached")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data",
+                    help="where datasets and LGVI reference runs are cached")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", type=writable(), default="")
     a = ap.parse_args(argv)

@@ -65,7 +65,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=bounded(int, at_least=1), default=80,
                     help="free-running steps per window (the printed scene's "
                     "test part of Simulation III has 80)")
-    ap.add_argument("--data-dir", type=writable(folder=True), default="data", help="where the checkpoints' datasets are read or made")
+    ap.add_argument("--data-dir", type=writable(folder=True), default="data",
+                    help="where the checkpoints' datasets are read or made")
     ap.add_argument("--variants", type=bounded(int, at_least=0), default=0,
                     help="trajectories of the dataset (0: the checkpoint's own; "
                     "another number makes another dataset, for quick checks)")

@@ -318,7 +318,7 @@ def test_bad_inputs(tmp_path):
             MagneticParticleEnv(**kw)
     for kw, msg in (({"disturbance": 0.03}, "disturbance must be a DisturbanceConfig, got 0.03"),
                     ({"camera": None}, "camera must be a CameraSpec"),
-                    ({"switching": 1}, "switching must be a SwitchingConfig or NoneType")):
+                    ({"switching": 1}, "switching must be a SwitchingConfig or None, got 1")):
         with pytest.raises(TypeError, match=msg):
             MagneticParticleEnv(**kw)
     for kw, msg in (({"probability": 2.0}, "probability"), ({"magnitude": (0.1,)}, "magnitude must be"),

@@ -126,7 +126,7 @@ class EnvConfig:
         for name, kind in (("disturbance", DisturbanceConfig), ("particle", ParticleParams), ("camera", CameraSpec),
                            ("switching", (SwitchingConfig, type(None)))):
             if not isinstance(getattr(self, name), kind):
-                want = " or ".join(k.__name__ for k in (kind if isinstance(kind, tuple) else (kind,)))
+                want = kind.__name__ if isinstance(kind, type) else f"{kind[0].__name__} or None"
                 raise TypeError(f"{name} must be a {want}, got {getattr(self, name)!r}")
         for name in ("action_step", "control_period", "goal_radius", "map_resolution", "tool_length"):
             v = getattr(self, name)

@@ -123,7 +123,8 @@ def main(argv=None):
     ap.add_argument("--compile", action="store_true", help="also the compiled LGVI and surrogates")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0, help="timing rounds (default 3, --quick 1)")
-    ap.add_argument("--out", type=writable(folder=True), default="", help="folder for the table (.md) and the plot (.png)")
+    ap.add_argument("--out", type=writable(folder=True), default="",
+                    help="folder for the table (.md) and the plot (.png)")
     a = Args(**vars(ap.parse_args(argv)))
     rounds = a.rounds or (1 if a.quick else 3)
     torch.set_num_threads(a.threads)
