@@ -6,14 +6,16 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import field, fields
+from pathlib import Path
 
-__all__ = ["opt", "dataclass_parser", "bounded", "writable"]
+__all__ = ["opt", "dataclass_parser", "bounded", "writable", "readable"]
 
 
 def opt(default, help: str, choices=None, at_least=None, above=None, path: str | None = None):
     """A dataclass field whose ``help`` is the argument's ``--help`` text, ``choices`` its valid values,
-    ``at_least`` / ``above`` its lower bound (inclusive / exclusive) and ``path`` ("file" or "folder") an output
-    the run writes (:func:`writable`), checked as the command line is parsed."""
+    ``at_least`` / ``above`` its lower bound (inclusive / exclusive) and ``path`` ("file" or "folder": an output
+    the run writes, :func:`writable`; "input": a file it reads, :func:`readable`), checked as the command line is
+    parsed."""
     return field(default=default, metadata={"help": help, "choices": choices, "at_least": at_least, "above": above,
                                             "path": path})
 
@@ -51,6 +53,17 @@ def writable(folder: bool = False, kind=str):
     return convert
 
 
+def readable(kind=str):
+    """An argparse ``type``: a file the run will read (a checkpoint to resume or start from), as ``kind`` of the
+    text, which must exist when the command line is parsed (not only once the data are generated); the empty text
+    (none) passes."""
+    def convert(text: str):
+        if text and not Path(text).is_file():
+            raise argparse.ArgumentTypeError(f"no such file: {text!r}")
+        return kind(text)
+    return convert
+
+
 def dataclass_parser(cls, description: str) -> argparse.ArgumentParser:
     """An argument parser with one flag per field of the dataclass ``cls`` (fields made by :func:`opt`)."""
     ap = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -62,6 +75,8 @@ def dataclass_parser(cls, description: str) -> argparse.ArgumentParser:
         kind = type(f.default)
         if kind in (int, float):
             kind = bounded(kind, meta.get("at_least"), meta.get("above"))
+        elif meta.get("path") == "input":
+            kind = readable()
         elif meta.get("path"):
             kind = writable(meta["path"] == "folder")
         ap.add_argument(flag, type=kind, default=f.default, help=meta["help"], choices=meta["choices"])

@@ -50,7 +50,7 @@ from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cmlearn.args import bounded, writable  # noqa: E402
+from cmlearn.args import bounded, readable, writable  # noqa: E402
 from cmlearn.data import cached_dataset  # noqa: E402
 from cmlearn.data.generate import reference_rollout  # noqa: E402
 from cmlearn.data.tasks import get_task  # noqa: E402
@@ -464,7 +464,7 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=2)
     ap.add_argument("--seed", type=bounded(int, at_least=0), default=0)
     ap.add_argument("--data-dir", type=writable(folder=True), default="data")
-    ap.add_argument("--init", default="", help="start from this run's weights (its --out file)")
+    ap.add_argument("--init", type=readable(), default="", help="start from this run's weights (its --out file)")
     ap.add_argument("--out", type=writable(), default="runs/position_only_step.pt")
     a = ap.parse_args(argv)
     for name in ("minutes", "batch", "lr", "hidden", "r", "threads", "variants"):

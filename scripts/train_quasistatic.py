@@ -60,10 +60,10 @@ class Args:
                         "on (0: none)", at_least=0)
     fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)", at_least=0)
     out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)", path="file")
-    resume: str = opt("", "a Lightning checkpoint to resume")
+    resume: str = opt("", "a Lightning checkpoint to resume", path="input")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
                              "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may "
-                             "differ (the LSTM reads any history); the linear part is fitted anew")
+                             "differ (the LSTM reads any history); the linear part is fitted anew", path="input")
     quick: bool = opt(False, "smoke-test budget: 3 profiles of 1 s, two epochs of 4 batches, no evaluation")
 
 

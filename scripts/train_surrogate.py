@@ -121,8 +121,10 @@ class Args:
                                     "ahead of time; equal to the eager LGVI to round-off; not for the magnetic rod)")
     out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)", path="file")
     log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints", path="folder")
-    resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues")
-    init_from: str = opt("", "a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)")
+    resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues",
+                      path="input")
+    init_from: str = opt("", "a cmlearn surrogate checkpoint (.pt) whose weights start a new run (fine-tuning)",
+                         path="input")
     keep_scales: bool = opt(False, "with --init-from, keep the checkpoint's input and output scales where this run's "
                                    "data gives others (e.g. more variants of the same scene: the scales only "
                                    "normalise, so the weights keep their meaning); the difference is recorded")

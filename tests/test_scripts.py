@@ -54,13 +54,16 @@ SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (
 
 #: the options through which a script writes its results (files or folders)
 OUTPUTS = ("out", "data_dir", "log_dir", "ship", "report")
+#: the options naming a file a training run starts from
+INPUTS = ("resume", "init_from", "init")
 
 
 @pytest.mark.parametrize("name", SCRIPTS)
 def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, monkeypatch, capsys, tmp_path):
     """Each script's parser (caught as ``main([])`` parses, before any work): no option is a plain int or float, and
     each number option refuses 'nan' with argparse's usage error naming the flag; each output path (``--out``,
-    ``--data-dir``, ``--log-dir``, ``--ship``, ``--report``) is refused there when it lies under a file."""
+    ``--data-dir``, ``--log-dir``, ``--ship``, ``--report``) is refused there when it lies under a file, and each file
+    a training run starts from (``--resume``, ``--init-from``, ``--init``) when it does not exist."""
     import argparse
 
     class Parsed(Exception):
@@ -95,6 +98,12 @@ def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, m
             err = capsys.readouterr().err
             assert e.value.code == 2 and f"argument {flag}: cannot write" in err and "is a file" in err, err[-300:]
             assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+        if act.dest in INPUTS and act.nargs != 0:  # train_agent's --resume is a switch (its run folder's state)
+            assert getattr(act.type, "__qualname__", "").startswith("readable."), f"{name} {flag}: unchecked file"
+            with pytest.raises(SystemExit) as e:
+                ap.parse_args([flag, str(tmp_path / "missing.ckpt")])
+            err = capsys.readouterr().err
+            assert e.value.code == 2 and f"argument {flag}: no such file" in err, err[-300:]
     assert checked or name in ("report_agent", "report_lgvi_convergence", "report_rollout_sensitivity",
                                "report_surrogates"), f"{name}: no number option found"
 
