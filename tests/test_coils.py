@@ -161,6 +161,11 @@ def test_bad_coil_input_and_points():
         loop.field([[0.0, 0.0, 0.0]])
     with pytest.raises(ValueError, match="points"):
         loop.field(torch.tensor([[math.nan, 0.0, 0.0]]))
+    far = {F64: 1e160, torch.float32: 1e20}  # squared distances overflow
+    for dt, x in far.items():
+        assert torch.isfinite(loop.field(torch.tensor([[x / 1e10, 0.0, x / 1e10]], dtype=dt))).all()
+        with pytest.raises(ValueError, match=r"points: a field point is too far .* \(up to 1\.000e\+(160|20) m"):
+            loop.field(torch.tensor([[x, 0.0, x]], dtype=dt))
 
 
 def test_coil_winding_pack():

@@ -44,11 +44,16 @@ FOLD_JUMP_DEG = 10.0
 _DEG = 180.0 / math.pi
 
 
+#: A trial position farther than this (m) from the coils' origin is a diverging shooting step (the rod is 50 mm long).
+FAR = 1e3
+
+
 def field_hook(emns, I: Tensor):
-    """Field hook with fixed currents ``I`` (C,) or (V, C); non-finite trial positions (a diverging shooting
-    step) get a NaN field, so that the solver rejects the step instead of the coil model raising."""
+    """Field hook with fixed currents ``I`` (C,) or (V, C); trial positions that are not finite or farther than
+    :data:`FAR` (a diverging shooting step) get a NaN field, so that the solver rejects the step instead of the coil
+    model raising."""
     def hook(_t, x):
-        ok = torch.isfinite(x).all(-1, keepdim=True)
+        ok = (x.abs() <= FAR).all(-1, keepdim=True)  # False where NaN
         B, dB = emns.field_and_gradient(torch.where(ok, x, torch.zeros_like(x)), I)
         return B.masked_fill(~ok, math.nan), dB.masked_fill(~ok[..., None], math.nan)
     return hook

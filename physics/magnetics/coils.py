@@ -143,6 +143,9 @@ def _check_wire(d: Tensor, n: Tensor, a: Tensor, min_distance: float) -> int:
         if dist2.numel() == 0:
             return 1
         kc_min = float((dist2 / ((rho + a) ** 2 + z * z)).min().sqrt())
+        if not math.isfinite(kc_min):  # inf / inf
+            raise ValueError(f"points: a field point is too far from the loops for {d.dtype} (up to "
+                             f"{float(d.abs().max()):.3e} m: its squared distance overflows)")
     return agm_iterations(kc_min, d.dtype)
 
 
