@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import pytest
@@ -170,6 +171,23 @@ def test_the_shipped_hybrid_reproduces_its_recorded_check_and_beats_the_static_r
     scene = get_task("magnetic_rod").base_scene()
     with pytest.raises(ValueError, match="has no coil field"):
         engine.stepper(replace(scene, loads=replace(scene.loads, field=None)))
+
+
+def test_the_field_hook_gives_a_diverging_trial_position_a_nan_field():
+    """A shooting step that diverges puts nodes at non-finite or absurd positions (1e239 m was seen at 400 A): they
+    get a NaN field, which the solver rejects, instead of the coil model's overflow error; the rest are exact."""
+    from cmlearn.data.quasistatic import FAR, field_hook
+    from cmlearn.data.tasks import get_task
+    emns = get_task("magnetic_rod").base_scene().loads.field.emns
+    I = torch.tensor([3.0, -1.0, 0.5, 0.0, 2.0, -4.0], dtype=torch.float64)
+    x = torch.tensor([[0.01, 0.0, -0.02], [math.nan, 0.0, 0.0], [1e239, 0.0, 0.0], [0.0, -2 * FAR, 0.0]],
+                     dtype=torch.float64)
+    B, dB = field_hook(emns, I)(0.0, x)
+    B0, dB0 = emns.field_and_gradient(x[:1], I)
+    assert torch.equal(B[:1], B0) and torch.equal(dB[:1], dB0)
+    assert B[1:].isnan().all() and dB[1:].isnan().all()
+    with pytest.raises(ValueError, match="too far"):
+        emns.field_and_gradient(x[2:3], I)
 
 
 def test_the_stability_margin_falls_to_zero_at_a_snap_through():
@@ -383,6 +401,40 @@ def test_the_real_time_stepper_follows_the_offline_rollout_and_names_bad_input_a
     st.solver.max_iter, st.stages = 1, ((1, 1),)  # no try can converge: the fallback runs and fails
     with pytest.raises(SolverError, match=r"no static equilibrium at the new currents.*step=1, time=0\.02"):
         st.step(torch.full((6,), 3.0, dtype=torch.float64))
+    # currents beyond the training profiles' 4 A per coil warn, once per stepper
+    with pytest.warns(UserWarning, match=r"exceed the \+-4 A per coil.*the correction extrapolates"):
+        with pytest.raises(SolverError):
+            st.step(torch.tensor([0.0, 0.0, -4.5, 0.0, 0.0, 0.0], dtype=torch.float64))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SolverError):
+            st.step(torch.full((6,), 5.0, dtype=torch.float64))
+
+
+def test_the_stepper_gives_up_past_max_seconds_and_stays_at_its_last_frame():
+    """Far outside the training currents the fallback's sub-steps searched for over 14 minutes (1e4 A, eager): with
+    ``max_seconds`` the step ends in a SolverError naming it soon after, and the next step goes on from the last
+    frame as if the failed one had not been asked for."""
+    import time
+    from physics.errors import SolverError
+    torch.set_num_threads(1)
+    engine = QuasiStaticSurrogate.load(SHIPPED, task="magnetic_rod")
+    scene = engine.task.scene_by_name("magnetic_rod_heldout")
+    for bad in (0.0, math.inf, "1"):
+        with pytest.raises(ValueError, match="max_seconds must be a finite number of seconds > 0 or None"):
+            engine.stepper(scene, max_seconds=bad)
+    currents = lambda k: scene.loads.field.currents(torch.tensor(0.02 * k, dtype=torch.float64))  # noqa: E731
+    st, ref = engine.stepper(scene, max_seconds=1.5), engine.stepper(scene)
+    st.step(currents(1))
+    ref.step(currents(1))
+    last, t0 = st.solution, time.perf_counter()
+    with pytest.warns(UserWarning, match="exceed"):
+        with pytest.raises(SolverError, match=r"no static equilibrium within max_seconds=1\.5 s.*step=2, time=0\.04"):
+            st.step(torch.tensor([1e4, -1e4, 1e4, 0.0, 0.0, 0.0], dtype=torch.float64))
+    assert time.perf_counter() - t0 < 4.5 and st.solution is last and st.k == 1
+    c, R = st.step(currents(2))
+    c_ref, R_ref = ref.step(currents(2))
+    assert (c - c_ref).abs().max() < 1e-9 and (R - R_ref).abs().max() < 1e-9
 
 
 def test_the_staged_solve_crosses_a_snap_through_onto_the_branch_the_escalation_finds():

@@ -340,7 +340,7 @@ def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -
 
 
 # ------------------------------------------------------------------------------ magnetic rod (Data-set IV)
-_CURRENT_LIMIT = 4.0  # A per coil in training profiles
+CURRENT_LIMIT = 4.0  #: A per coil: the magnetic rod's training profiles stay within it
 
 
 def _setpoint_variants(scene: Scene, n: int, seed: int, label: str, zero, draw, to_currents, info_key: str,
@@ -372,7 +372,7 @@ def _magnetic_variants(scene: Scene, n: int, seed: int) -> dict:
     zero = torch.zeros(scene.loads.field.currents(0.0).shape[-1], dtype=torch.float64)
 
     def draw(back, u, g):
-        return zero if back else (torch.rand(zero.shape, generator=g, dtype=torch.float64) * 2 - 1) * _CURRENT_LIMIT
+        return zero if back else (torch.rand(zero.shape, generator=g, dtype=torch.float64) * 2 - 1) * CURRENT_LIMIT
     return _setpoint_variants(scene, n, seed, "printed (set-point moves to 5 mT fields)", zero, draw, torch.stack,
                               "setpoints", lambda pts: torch.stack(pts).tolist())
 

@@ -30,12 +30,15 @@ the static track offline, warm-started without the predictor): on the held-out p
 from __future__ import annotations
 
 import math
+import time
+import warnings
 
 import torch
 from torch import Tensor
 
 from cmlearn.data.quasistatic import (_HALVINGS, TabulatedField, _warm_step, compose, field_hook, fold_clock_step,
                                       stability_margin, static_state, with_fold_clock)
+from cmlearn.data.tasks import CURRENT_LIMIT
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 from physics.cosserat_ode import quat_matrix
 from physics.cosserat_shooting import StaticSolution
@@ -61,27 +64,36 @@ class QuasiStaticStepper:
     against it); ``chord``: chord iterations before the first stage's LM; ``frame_solve``: the first stage by a
     :class:`~physics.cosserat_frames.FrameSolve` (module docstring; off: the solver's call). The attributes ``static``
     and ``solution`` hold the last frame's static rod, ``iterations`` the chord and LM iterations of its solve's tries
-    (of the fallback's sub-steps, the last one's)."""
+    (of the fallback's sub-steps, the last one's). Currents beyond :data:`~cmlearn.data.tasks.CURRENT_LIMIT` A on
+    any coil (outside the training profiles, where the correction extrapolates) warn once. ``max_seconds`` bounds a
+    step's solve: past it a :class:`~physics.errors.SolverError` names the step and the stepper stays at its last
+    frame (checked at every field evaluation eagerly, between solves when compiled; default unbounded: far outside the
+    training currents, e.g. 1e4 A, the fallback's sub-steps were still searching after 14 minutes, eager)."""
 
     def __init__(self, model: QuasiStaticCorrection, rest: Tensor, emns, pose: dict, delta: float,
                  compile: bool = False, predictor: bool = True, programs: dict | None = None,
                  stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None, chord: bool = True,
-                 frame_solve: bool = True):
+                 frame_solve: bool = True, max_seconds: float | None = None):
         from physics.scenes_cosserat import paper2_magnetic_rod
+        if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and 0 < max_seconds < math.inf):
+            raise ValueError(f"max_seconds must be a finite number of seconds > 0 or None, got {max_seconds!r}")
+        self.max_seconds = max_seconds
         self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
         self.sc = paper2_magnetic_rod(13)
         self.solver = self.sc.solver(compile=compile, **({} if tol is None else {"tol": tol}))
         self.nodes = list(self.sc.rod.grid.magnet_nodes)
         if compile:
             table = field_table(emns)
-            self.field_of = lambda I: TabulatedField(table, I)  # noqa: E731
+            self._field_of = lambda I: TabulatedField(table, I)  # noqa: E731
         else:
-            self.field_of = lambda I: field_hook(emns, I)  # noqa: E731
+            self._field_of = lambda I: field_hook(emns, I)  # noqa: E731
+        self._deadline = None
         self.predictor, self.compiled, self.stages, self.chord = predictor, compile, tuple(stages), bool(chord)
         self.frame_solve, self._frame_solves = bool(frame_solve), {}  # (per number of iterations allowed)
         with torch.no_grad():
             self._rest_out = model.rest_output()
         self._programs = {} if programs is None else programs
+        self._warned = False
         self.reset()
 
     # ---------------------------------------------------------------------------------------------- state
@@ -96,12 +108,39 @@ class QuasiStaticStepper:
         self.static = s.expand(1, c.increments + 1, s.shape[-1]).clone()
         self.dev = torch.zeros(1, c.eta + 1, 12)
 
+    def field_of(self, I: Tensor):
+        """The field hook of currents ``I``; while a step's solve runs under ``max_seconds``, one that raises past
+        it (the eager hook at every evaluation; the compiled solver's tabulated field, traced, as it is made)."""
+        deadline = self._deadline
+        if deadline is None:
+            return self._field_of(I)
+        self._check_deadline(deadline)
+        hook = self._field_of(I)
+        if self.compiled:
+            return hook
+
+        def timed(t, x):
+            self._check_deadline(deadline)
+            return hook(t, x)
+        return timed
+
+    def _check_deadline(self, deadline: float):
+        if time.perf_counter() > deadline:
+            raise SolverError(f"quasi-static step: no static equilibrium within max_seconds={self.max_seconds:g} s "
+                              f"at currents {self._target} A; the stepper stays at its last frame",
+                              step=self.k + 1, time=(self.k + 1) * self.delta)
+
     def _currents(self, currents) -> Tensor:
         I = torch.as_tensor(currents, dtype=torch.float64).detach()
         if I.shape != (self.emns.n_coils,):
             raise ValueError(f"currents must be {self.emns.n_coils} numbers (A), got shape {tuple(I.shape)}")
         if not all(map(math.isfinite, I.tolist())):
             raise ValueError(f"currents must be finite, got {I.tolist()}")
+        if not self._warned and float(I.abs().max()) > CURRENT_LIMIT:
+            self._warned = True
+            warnings.warn(f"currents {I.tolist()} A exceed the +-{CURRENT_LIMIT:g} A per coil of the correction's "
+                          "training profiles: the static rod is exact, the correction extrapolates (this stepper "
+                          "warns once)", stacklevel=3)
         return I
 
     def _state(self, sol) -> Tensor:
@@ -116,7 +155,17 @@ class QuasiStaticStepper:
     def solve(self, currents) -> StaticSolution:
         """The static rod at ``currents`` (the next frame's), from the predictor or the last solution; it becomes
         :attr:`solution` (the correction is :meth:`correct`'s)."""
-        I, sol = self._currents(currents), self.solution
+        I = self._currents(currents)
+        if self.max_seconds is None:
+            return self._solve(I)
+        self._deadline, self._target = time.perf_counter() + self.max_seconds, I.tolist()
+        try:
+            return self._solve(I)
+        finally:
+            self._deadline = None
+
+    def _solve(self, I: Tensor) -> StaticSolution:
+        sol = self.solution
         secant = self._prev_wrench is not None and self.predictor
         init = torch.lerp(self._prev_wrench, sol.base_wrench, 2.0) if secant else sol  # 2 w(k) - w(k-1)
         jac = None  # the chord steps' Jacobian: the secant of the last two frames' where the predictor is
@@ -144,6 +193,8 @@ class QuasiStaticStepper:
                 out = _warm_step(self.sc, self.solver, self.field_of, lambda u: I0 + u * (I - I0), self.pose, sol,
                                  0.0, 1.0, _HALVINGS)
             except SolverError as e:
+                if self._deadline is not None and time.perf_counter() > self._deadline:
+                    raise
                 raise SolverError(f"quasi-static step: no static equilibrium at the new currents ({e})",
                                   step=self.k + 1, time=(self.k + 1) * self.delta) from None
             self.iterations += int(out.iterations)
