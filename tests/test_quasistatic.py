@@ -420,7 +420,7 @@ def test_the_stepper_gives_up_past_max_seconds_and_stays_at_its_last_frame():
     torch.set_num_threads(1)
     engine = QuasiStaticSurrogate.load(SHIPPED, task="magnetic_rod")
     scene = engine.task.scene_by_name("magnetic_rod_heldout")
-    for bad in (0.0, math.inf, "1"):
+    for bad in (0.0, math.inf, "1", True):
         with pytest.raises(ValueError, match="max_seconds must be a finite number of seconds > 0 or None"):
             engine.stepper(scene, max_seconds=bad)
     currents = lambda k: scene.loads.field.currents(torch.tensor(0.02 * k, dtype=torch.float64))  # noqa: E731

@@ -75,7 +75,8 @@ class QuasiStaticStepper:
                  stages: tuple[tuple[int, int], ...] = STAGES, tol: float | None = None, chord: bool = True,
                  frame_solve: bool = True, max_seconds: float | None = None):
         from physics.scenes_cosserat import paper2_magnetic_rod
-        if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and 0 < max_seconds < math.inf):
+        ok = isinstance(max_seconds, (int, float)) and not isinstance(max_seconds, bool) and 0 < max_seconds < math.inf
+        if max_seconds is not None and not ok:
             raise ValueError(f"max_seconds must be a finite number of seconds > 0 or None, got {max_seconds!r}")
         self.max_seconds = max_seconds
         self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
