@@ -169,8 +169,12 @@ def parse(argv=None) -> Args:
                      "rod's own state)")
     if a.chord_projection and get_task(a.task).custom:
         ap.error(f"--chord-projection: task {a.task!r} tracks points that are not a chain along the rod (markers)")
-    if a.resume and not a.ema and Path(a.resume).is_file() and \
-            "current_model_state" in torch.load(a.resume, map_location="cpu", weights_only=False):
+    if a.resume:
+        try:
+            resumed = torch.load(a.resume, map_location="cpu", weights_only=False)
+        except Exception as e:  # noqa: BLE001 (any unpickling failure)
+            ap.error(f"--resume: {a.resume} is not a readable Lightning checkpoint ({type(e).__name__}: {e})")
+    if a.resume and not a.ema and isinstance(resumed, dict) and "current_model_state" in resumed:
         ap.error(f"--resume: {a.resume} comes from a run with --ema (its state_dict holds the averaged weights, "
                  "the optimiser's own are beside them): resume it with the same --ema")
     if a.keep_scales and not a.init_from:

@@ -426,9 +426,13 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                   "zx", "--head-hidden", "16", "--init-from", "ck.pt"], tmp_path,
                  "a --head-hidden, --stencil and --mix at least its own")
     for extra, msg in ((["--init-from", "ck.pt", "--eta", "3"], "--init-from: ck.pt: architecture"),
-                       (["--init-from", "nothing.pt"], "--init-from: nothing.pt: no such checkpoint file")):
+                       (["--init-from", "nothing.pt"], "argument --init-from: no such file: 'nothing.pt'")):
         script_fails([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--threads", "1", *extra], tmp_path, msg)
-    for extra, msg in ((["--init-from", "ck.pt", "--resume", "x.ckpt"], "--init-from and --resume exclude"),
+    torch.save({"state_dict": {}}, tmp_path / "x.ckpt")
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    for extra, msg in ((["--init-from", str(tmp_path / "ck.pt"), "--resume", str(tmp_path / "x.ckpt")],
+                        "--init-from and --resume exclude"),
+                       (["--resume", str(tmp_path / "empty.ckpt")], "empty.ckpt is not a readable Lightning checkpoint"),
                        (["--keep-scales"], "--keep-scales needs --init-from"),
                        (["--printed-repeat", "0"], "argument --printed-repeat: must be >= 1, got '0'"),
                        (["--select-by", "loss"], "argument --select-by: invalid choice: 'loss'"),
