@@ -14,6 +14,7 @@ entirely to the tip node).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -241,7 +242,8 @@ class Rod:
         if not isinstance(self.material, Material):
             raise TypeError(f"Rod.material must be a Material, got {type(self.material)}")
         if self.element_lengths is None:
-            if self.n_elements is None or int(self.n_elements) != self.n_elements or self.n_elements < 1:
+            if not isinstance(self.n_elements, numbers.Integral) or isinstance(self.n_elements, bool) \
+                    or self.n_elements < 1:
                 raise ValueError(f"Rod.n_elements must be an integer >= 1, got {self.n_elements!r}")
         else:
             ls = tuple(float(x) for x in self.element_lengths)

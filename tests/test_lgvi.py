@@ -269,7 +269,8 @@ def test_the_time_is_the_start_plus_whole_steps():
     sim = LGVI(rod, dt=1e-4, loads=Loads(force=force), stability="off")
     end, traj = sim.simulate(sim.initial_state(), n_steps=5001, record_every=1000)
     assert traj.t[5].item() == 0.5 and end.step == 5001
-    assert len(seen) == 5002 and sum(seen) == 5001  # the start's half kick and steps 0..4999; step 5000 at 0.5 s
+    # the start's half kick, simulate's check of the load's shape at the start, steps 0..4999; step 5000 at 0.5 s
+    assert len(seen) == 5003 and sum(seen) == 5002
     assert not seen[-1]
     later = sim.initial_state(t=1.0)
     assert sim.simulate(later, n_steps=10_000, record_every=10**9)[0].t == 2.0
@@ -386,6 +387,43 @@ def test_input_validation():
     for bad in ({"steps_per_call": 0}, {"newton_iters": 0}):  # refused before anything compiles
         with pytest.raises(ValueError, match="steps_per_call and newton_iters must be integers >= 1"):
             sim.compiled_rollout(sim.initial_state(), n_steps=4, **bad)
+
+
+def test_a_state_not_of_this_integrator_is_refused_naming_its_field():
+    """A state of another rod, dtype or batch, or with a NaN, is refused before stepping (it failed deep in torch
+    with a size or dtype mismatch, or as a solver divergence at the wrong node)."""
+    sim = LGVI(pdms_rod(4), dt=1e-5)
+    s0 = sim.initial_state()
+    other = LGVI(pdms_rod(6), dt=1e-5).initial_state()
+    nan = s0.p.clone()
+    nan[3, 1] = float("nan")
+    for state, msg in ((other, r"state.p must be \(\.\.\., 5, 3\) for this rod of 5 nodes, got \(7, 3\)"),
+                       (s0._replace(v=s0.v.expand(2, 5, 3)), r"state.v must be .* batch shape of state.p \(\)"),
+                       (s0._replace(R=s0.R.float()), "state.R is torch.float32 on cpu, but this LGVI runs torch.float64")):
+        for run in (lambda: sim.simulate(state, n_steps=4), lambda: sim.compiled_rollout(state, n_steps=4)):
+            with pytest.raises(ValueError, match=msg):
+                run()
+    with pytest.raises(ValueError, match="state.p is not finite at node 3"):  # a compiled call checks no values
+        sim.simulate(s0._replace(p=nan), n_steps=4)
+    with pytest.raises(TypeError, match="state must be an LGVIState"):
+        sim.simulate(tuple(s0), n_steps=1)
+
+
+
+def test_a_node_load_not_given_per_node_is_refused():
+    """A force (3,) broadcast onto every node, silently: refused as a tensor at construction, as a function of time
+    at the start of a rollout."""
+    rod = pdms_rod(4)
+    tip = torch.tensor([0.0, 1e-3, 0.0], dtype=D)
+    with pytest.raises(ValueError, match=r"Loads.force must be \(\.\.\., 5, 3\).*got shape \(3,\)"):
+        LGVI(rod, dt=1e-5, loads=Loads(force=tip))
+    sim = LGVI(rod, dt=1e-5, loads=Loads(torque=lambda t: tip * t))
+    with pytest.raises(ValueError, match=r"Loads.torque \(the value of its function at t=0 s\) must be"):
+        sim.simulate(sim.initial_state(), n_steps=2)
+    per_node = torch.zeros(5, 3, dtype=D)
+    per_node[-1] = tip
+    fine = LGVI(rod, dt=1e-5, loads=Loads(force=lambda t: per_node if t < 1.0 else None))
+    assert fine.simulate(fine.initial_state(), n_steps=2)[0].p[-1, 1] > 0
 
 
 @pytest.mark.slow

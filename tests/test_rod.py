@@ -33,8 +33,9 @@ def test_rod_validation():
         CircularSection(-1e-3)
     with pytest.raises(ValueError, match="edge"):
         SquareSection(0.0)
-    with pytest.raises(ValueError, match="n_elements"):
-        Rod(length=1.0, section=CircularSection(1e-3), material=mat, n_elements=0)
+    for n in (0, 2.0, True):  # 2.0 failed later in the mesh, True made a one-element rod
+        with pytest.raises(ValueError, match=f"Rod.n_elements must be an integer >= 1, got {n}"):
+            Rod(length=1.0, section=CircularSection(1e-3), material=mat, n_elements=n)
     with pytest.raises(ValueError, match="sum to"):
         Rod(length=1.0, section=CircularSection(1e-3), material=mat, element_lengths=(0.5, 0.4))
     with pytest.raises(ValueError, match="outside the rod"):
