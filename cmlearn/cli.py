@@ -214,11 +214,11 @@ def _report(scene, s: dict) -> None:
 
 def _cmd_compare(args) -> int:
     from .compare import run_compare
-    from .surrogate import CheckpointError, SurrogateDivergence
+    from .surrogate import SurrogateDivergence
 
     try:
         run_compare(args.scene, args.checkpoint, args.duration, args.out, compile=args.compile)
-    except (KeyError, FileNotFoundError, CheckpointError) as e:  # a KeyError's str() would quote its message
+    except (KeyError, ValueError, FileNotFoundError) as e:  # CheckpointError is a ValueError; str(KeyError) quotes
         print(f"cmlearn compare: {e.args[0] if isinstance(e, KeyError) and e.args else e}", file=sys.stderr)
         return 2
     except SurrogateDivergence as e:

@@ -106,7 +106,8 @@ def compare_scene(scene_name: str, checkpoint: str | Path | None = None, duratio
 
     task = task_for_scene(scene_name)
     scene = task.scene_by_name(scene_name)
-    if duration:
+    task.check_duration(duration)
+    if duration is not None:
         from dataclasses import replace
         scene = replace(scene, duration=duration)
     engine = Surrogate.load(find_checkpoint(task.name, checkpoint), task=task.name)

@@ -57,8 +57,16 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
     assert torch.allclose(tiny["wrench"][0, :, 0], torch.tensor([0.0, -0.02, 0.0]))
     mid = task.tracked.index(50)
     assert float(tiny["positions"][0, -1, mid, 1] - tiny["positions"][0, 0, mid, 1]) < -1e-4  # pushed down
-    with pytest.raises(ValueError, match="n_variants must be an integer >= 1"):
-        generate_dataset("semicircle", 0, seed=1, out=tmp_path / "none.pt", duration=0.3)
+    # refused before any physics: duration 0 simulated the whole scene, a bool n_variants or a float seed failed
+    # deep in torch, a duration under one 10 ms step gave a dataset of one frame
+    for args, kw, msg in (((0,), {}, "n_variants must be an integer >= 1"),
+                          ((True,), {}, "n_variants must be an integer >= 1 .*got True"),
+                          ((2,), {"seed": 1.5}, "seed must be an integer >= 0, got 1.5"),
+                          ((2,), {"duration": 0}, "duration must be a time of at least one surrogate step \\(0.01 s"),
+                          ((2,), {"duration": 0.004}, "duration must be a time of at least one surrogate step")):
+        with pytest.raises(ValueError, match=msg):
+            generate_dataset("semicircle", *args, **{"seed": 1, "out": tmp_path / "none.pt", "duration": 0.3, **kw})
+    assert not (tmp_path / "none.pt").exists()
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a dataset")
     with pytest.raises(ValueError, match="not a readable"):
@@ -1277,6 +1285,19 @@ def test_compare_command_runs_physics_and_surrogate(tmp_path):
     shipped, unshipped = bad.stderr.split("scenes with a shipped checkpoint:")[1].split("without one")
     assert "'semicircle_heldout'" in shipped and "'magnetic_rod_planar'" not in shipped
     assert "'magnetic_rod_planar'" in unshipped and "--checkpoint" in unshipped
+
+
+def test_compare_refuses_a_duration_shorter_than_one_surrogate_step(tmp_path, capsys):
+    """0.005 s on the semicircle (10 ms steps) ran the LGVI, then failed in a max() over no frames; duration=0 from
+    Python ran the whole scene."""
+    from cmlearn import cli
+    from cmlearn.compare import compare_scene
+    assert cli.main(["compare", "--duration", "0.004", "--out", str(tmp_path)]) == 2
+    assert "duration must be a time of at least one surrogate step (0.01 s on task 'semicircle')" in capsys.readouterr().err
+    for bad in (0, 0.0049, float("nan"), "1"):
+        with pytest.raises(ValueError, match="duration must be a time of at least one surrogate step"):
+            compare_scene("semicircle_heldout", duration=bad)
+    assert not any(tmp_path.iterdir())
 
 
 def test_compare_compiled_equals_eager_and_times_its_compile_apart(monkeypatch, tmp_path):

@@ -14,6 +14,7 @@ the single LGVI runs an evaluation compares a surrogate with (:func:`reference_r
 from __future__ import annotations
 
 import hashlib
+import numbers
 import time
 from pathlib import Path
 
@@ -150,15 +151,18 @@ def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, dur
     (:func:`lgvi_frames`), not for a task with a module of its own."""
     from dataclasses import replace
     task = get_task(task) if isinstance(task, str) else task
-    if not (isinstance(n_variants, int) and n_variants >= 1):
+    if not (isinstance(n_variants, int) and not isinstance(n_variants, bool) and n_variants >= 1):
         raise ValueError(f"n_variants must be an integer >= 1 (the printed scene and random variants), got "
                          f"{n_variants!r}")
+    if not (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and seed >= 0):
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    task.check_duration(duration)
     if task.custom:
         if compile:
             raise ValueError(f"simulate_task: task {task.name!r} runs its own LGVI, eagerly (compile is not accepted)")
         return task.hook("simulate")(task, n_variants, seed, duration)
     scene = task.base_scene()
-    if duration:
+    if duration is not None:
         scene = replace(scene, duration=duration)
     var = task.variants(scene, n_variants, seed)
     force = var["force"] if var["force"] is not None else "scene"

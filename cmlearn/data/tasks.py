@@ -34,6 +34,7 @@ Variant 0 is always the printed scene itself: its first 60 % trains and its last
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -226,6 +227,14 @@ class SurrogateTask:
             from dataclasses import replace
             cfg = replace(cfg, left=tuple(left), right=tuple(right))
         return cfg.with_stencil(stencil)
+
+    def check_duration(self, duration) -> None:
+        """ValueError unless ``duration`` (s) is None (a scene's own) or a finite time of at least one step
+        ``delta`` (rounded to whole steps as the rollouts do: a shorter one gives no frame to predict)."""
+        if duration is not None and not (isinstance(duration, numbers.Real) and math.isfinite(duration)
+                                         and round(duration / self.delta) >= 1):
+            raise ValueError(f"duration must be a time of at least one surrogate step ({self.delta:g} s on task "
+                             f"{self.name!r}), or None for the scene's, got {duration!r}")
 
     def record_every(self, scene: Scene) -> int:
         k = self.delta / scene.dt
