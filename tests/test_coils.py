@@ -250,3 +250,31 @@ def test_superposition_of_coils():
     m = torch.tensor([0.0, 0.0, 0.1], dtype=F64).expand(10, 3)
     F, T = (a + b).force_torque(pts, m)
     assert torch.allclose(F, (dB * m[..., :, None]).sum(-2)) and torch.allclose(T, torch.linalg.cross(m, B))
+
+
+def test_loop_on_axis_field_rejects_a_bad_radius():
+    """A negative radius gave the field of the positive one and a zero radius a ZeroDivisionError."""
+    for bad in (0.0, -0.03, math.nan):
+        with pytest.raises(ValueError, match="radius"):
+            loop_on_axis_field(0.01, bad)
+
+
+def test_nested_pairs_on_other_axes_give_the_requested_field():
+    """Currents for a requested centre field with pairs not on E1/E2: a tilted outer pair gave a field with an
+    E3 component nobody asked for (the solve used the E1, E2 rows only) and pairs on E3/E2 a singular-matrix
+    error; the request must lie in the plane of the pairs' axes, and one off it is refused."""
+    origin = torch.zeros(1, 3, dtype=F64)
+    n = torch.tensor([1.0, 0.0, 0.3], dtype=F64) / math.hypot(1.0, 0.3)
+    for outer_axis in (tuple(n.tolist()), (0.0, 0.0, 1.0)):
+        coils = NestedHelmholtz(outer=HelmholtzPair(0.25, turns=1250, axis=outer_axis),
+                                inner=HelmholtzPair(0.12, turns=600, axis=(0.0, 1.0, 0.0)))
+        want = 2e-3 * torch.tensor(outer_axis, dtype=F64) - 1e-3 * torch.tensor([0.0, 1.0, 0.0], dtype=F64)
+        I = coils.currents_for_field(want)
+        assert torch.allclose(coils.field(origin, I)[0], want, rtol=0, atol=1e-15)
+        with pytest.raises(ValueError, match="plane of the pairs' axes"):
+            coils.currents_for_field(torch.tensor([2e-3, 0.0, 0.0], dtype=F64) if outer_axis[2] == 1.0
+                                     else torch.tensor([0.0, 0.0, 1e-3], dtype=F64))
+    # float32 requests in the default E1E2 plane still pass and come back in float32
+    I32 = NestedHelmholtz().currents_for_field(torch.tensor([1e-3, 2e-3, 0.0]))
+    assert I32.dtype == torch.float32 and torch.allclose(I32.double(), NestedHelmholtz().currents_for_field(
+        torch.tensor([1e-3, 2e-3, 0.0], dtype=F64)), rtol=1e-6)

@@ -233,3 +233,15 @@ def test_field_table_matches_the_exact_coils_over_the_workspace(emns):
                      ({"centre": (0.0, 0.0)}, "centre")):
         with pytest.raises(ValueError, match=name):
             CoilFieldTable.from_emns(emns, **kw)
+
+
+def test_field_table_rejects_non_finite_currents(emns):
+    """The tabulated field gave a NaN field for NaN currents where the exact eMNS raises; it now raises too
+    (with ``check=False``, for compiled programs, it does not look)."""
+    from physics.magnetics.field_table import CoilFieldTable
+    table = CoilFieldTable.from_emns(emns, radius=0.01, spacing=2e-3, order=2)
+    I = torch.tensor([1.0, math.nan, 0.0, 0.0, 0.0, 0.0], dtype=F64)
+    for call in (table.field, table.field_and_gradient):
+        with pytest.raises(ValueError, match="currents must be finite"):
+            call(OFF * 0.1, I)
+    assert torch.isnan(table.field_and_gradient(OFF * 0.1, I, check=False)[0]).all()

@@ -273,3 +273,28 @@ def test_bad_input_is_rejected_with_the_parameter_name():
         UniformField([0.0, 1.0])
     with pytest.raises(ValueError, match="count"):
         CuboidMagnet(dimensions=(0.01, 0.01, 0.01)).dipoles(0)
+
+
+def test_dipole_set_rejects_a_non_finite_softening():
+    """A NaN softening made every field NaN and an infinite one every field zero, silently; like the dipole
+    functions, the set now refuses both, naming the parameter."""
+    pos, mom = torch.zeros(1, 3, dtype=D), torch.tensor([[0.0, 0.0, 1.0]], dtype=D)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="softening must be a finite length >= 0"):
+            DipoleSet(pos, mom, softening=bad)
+    with pytest.raises(ValueError, match="min_distance must be a finite length >= 0"):
+        DipoleSet(pos, mom, min_distance=-1e-3)
+
+
+def test_dipole_set_force_torque_on_no_points():
+    """An empty batch of target dipoles gives empty force and torque (as ``field`` does), not a torch.cat error."""
+    ds = DipoleSet(torch.zeros(2, 3, dtype=D), torch.eye(3, dtype=D)[:2])
+    F, T = ds.force_torque(torch.zeros(0, 3, dtype=D), torch.zeros(0, 3, dtype=D))
+    assert F.shape == (0, 3) and T.shape == (0, 3)
+
+
+def test_moment_from_remanence_rejects_a_nan_remanence():
+    with pytest.raises(ValueError, match="Br must be finite"):
+        moment_from_remanence(float("nan"), 1e-6)
+    with pytest.raises(ValueError, match="Br must be finite"):
+        moment_from_remanence(torch.tensor([0.0, math.inf, 1.3], dtype=D), 1e-6)

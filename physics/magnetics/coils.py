@@ -178,6 +178,7 @@ def loop_field_per_amp(points: Tensor, centres: Tensor, axes: Tensor, radii: Ten
 
 def loop_on_axis_field(z, radius: float, current: float = 1.0, turns: float = 1.0):
     """On-axis field ``mu0 n I R^2 / (2 (R^2 + z^2)^{3/2})`` (T) of a thin loop at axial offset ``z``."""
+    radius = _positive("radius", radius)
     return MU0 * turns * current * radius ** 2 / (2 * (radius ** 2 + z ** 2) ** 1.5)
 
 
@@ -350,15 +351,20 @@ class NestedHelmholtz(FieldModel):
         return self.unit_field_and_gradient(centre, gradient=False)[0][0].T
 
     def currents_for_field(self, B: Tensor, centre_matrix: Tensor | None = None) -> Tensor:
-        """Currents (..., 2) giving the field ``B`` (..., 3) at the centre (its E3 component must be
-        zero: the pairs act along E1 and E2). ``centre_matrix`` may pass a cached :meth:`centre_matrix`."""
+        """Currents (..., 2) giving the field ``B`` (..., 3) at the centre (it must lie in the plane of the two
+        pairs' axes: the E1E2 plane for the default coils). ``centre_matrix`` may pass a cached
+        :meth:`centre_matrix`."""
         B = torch.as_tensor(B, dtype=torch.get_default_dtype()) if not isinstance(B, Tensor) else B
         if B.shape[-1:] != (3,) or not bool(torch.isfinite(B).all()):
             raise ValueError(f"B must be a finite (..., 3) field, got shape {tuple(B.shape)}")
-        A = (self.centre_matrix() if centre_matrix is None else centre_matrix).to(dtype=B.dtype, device=B.device)
-        if bool((B[..., 2].abs() > 1e-9 * B.norm(dim=-1).clamp_min(1e-300)).any()):
-            raise ValueError("B must lie in the E1E2 plane (B[..., 2] == 0): the pairs act along E1 and E2")
-        return torch.linalg.solve(A[:2], B[..., :2, None])[..., 0]
+        A = (self.centre_matrix() if centre_matrix is None else centre_matrix).to(dtype=torch.float64, device=B.device)
+        Bd = B.to(torch.float64)
+        I = (torch.linalg.pinv(A) @ Bd[..., None])[..., 0]
+        tol = max(1e-9, 16 * torch.finfo(B.dtype).eps)  # B's own rounding (float32) leaves the plane by ~eps
+        if bool(((A @ I[..., None])[..., 0] - Bd).norm(dim=-1).gt(tol * Bd.norm(dim=-1).clamp_min(1e-300)).any()):
+            raise ValueError(f"B must lie in the plane of the pairs' axes {self.outer.axis} and {self.inner.axis} "
+                             "(the E1E2 plane for the default coils)")
+        return I.to(B.dtype)
 
     def with_currents(self, currents) -> "NestedHelmholtz":
         return replace(self, currents=tuple(float(c) for c in currents))

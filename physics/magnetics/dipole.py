@@ -31,7 +31,7 @@ from torch import Tensor
 __all__ = [
     "MU0", "moment_from_remanence", "dipole_field", "dipole_field_gradient", "dipole_force",
     "dipole_torque", "dipole_dipole_force", "gradient_to_five", "five_to_gradient", "force_map",
-    "force_from_gradient", "check_distances",
+    "force_from_gradient", "check_distances", "check_lengths",
 ]
 
 MU0 = 4e-7 * math.pi  # vacuum permeability (T m / A); m = Br V / mu0 uses this value
@@ -41,8 +41,10 @@ _K = MU0 / (4 * math.pi)
 def moment_from_remanence(Br, volume):
     """Dipole moment ``m = Br V / mu0`` (A m^2) of a uniformly magnetised body (Br in T, V in m^3).
 
-    ``Br`` may be a scalar or a polarization vector (tensor (..., 3)); ``volume`` must be > 0.
+    ``Br`` may be a scalar or a polarization vector (tensor (..., 3)), finite; ``volume`` must be > 0.
     """
+    if not bool(torch.isfinite(torch.as_tensor(Br)).all()):
+        raise ValueError(f"Br must be finite (T), got {Br}")
     if isinstance(volume, Tensor):
         if not bool(torch.isfinite(volume).all() and (volume > 0).all()):
             raise ValueError(f"volume must be finite and > 0 (m^3), got {volume}")
@@ -70,12 +72,17 @@ def check_distances(r2: Tensor, min_distance: float, name: str = "points") -> No
                      "dipole field is singular there (move the point or pass softening=...)")
 
 
-def _r2(d: Tensor, softening: float, min_distance: float) -> Tensor:
-    if d.shape[-1:] != (3,):
-        raise ValueError(f"d (displacements from the dipoles) must have shape (..., 3), got {tuple(d.shape)}")
+def check_lengths(softening: float, min_distance: float) -> None:
+    """Raise ``ValueError`` unless ``softening`` and ``min_distance`` are finite lengths >= 0."""
     for name, length in (("softening", softening), ("min_distance", min_distance)):
         if not (math.isfinite(length) and length >= 0):
             raise ValueError(f"{name} must be a finite length >= 0 (m), got {length!r}")
+
+
+def _r2(d: Tensor, softening: float, min_distance: float) -> Tensor:
+    if d.shape[-1:] != (3,):
+        raise ValueError(f"d (displacements from the dipoles) must have shape (..., 3), got {tuple(d.shape)}")
+    check_lengths(softening, min_distance)
     r2 = (d * d).sum(-1)
     if softening > 0:
         return r2 + softening * softening

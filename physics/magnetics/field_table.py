@@ -176,17 +176,19 @@ class CoilFieldTable(FieldModel):
         vals = self._flat[self.group[:, None], rows.flatten(-2)]  # (..., C, k * k, 6)
         return ((w[..., 0, :, None] * w[..., 1, None, :]).flatten(-2)[..., None, :] @ vals)[..., 0, :]
 
-    def _I(self, points: Tensor, currents) -> Tensor:
+    def _I(self, points: Tensor, currents, check: bool = True) -> Tensor:
         I = self.currents if currents is None else torch.as_tensor(currents)
         if I is None:
             I = torch.zeros(self.n_coils)
         if I.shape[-1:] != (self.n_coils,):
             raise ValueError(f"currents must have shape (..., {self.n_coils}), got {tuple(I.shape)}")
+        if check and not bool(torch.isfinite(I).all()):
+            raise ValueError("currents must be finite")
         return I.to(_F64)[..., None, :]
 
     def field_and_gradient(self, points: Tensor, currents: Tensor | None = None, check: bool = True):
         """B (..., P, 3) and dB (..., P, 3, 3) (float64) for ``currents`` (..., C) (default: the eMNS's)."""
-        I = self._I(points, currents)
+        I = self._I(points, currents, check)
         beta, grad = self.unit_field_and_gradient(points, check=check)
         return (beta * I[..., None]).sum(-2), (grad * I[..., None, None]).sum(-3)
 

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from .base import FieldModel, check_points
-from .dipole import MU0, check_distances
+from .dipole import MU0, check_distances, check_lengths
 
 __all__ = ["DipoleSet"]
 
@@ -40,8 +40,7 @@ class DipoleSet(FieldModel):
                              f"got {tuple(moments.shape)}")
         if not bool(torch.isfinite(moments).all()):
             raise ValueError("moments must be finite")
-        if softening < 0 or min_distance < 0:
-            raise ValueError(f"softening and min_distance must be >= 0, got {softening}, {min_distance}")
+        check_lengths(softening, min_distance)
         self.positions, self.moments = positions, moments
         self.softening, self.min_distance = float(softening), float(min_distance)
 
@@ -144,7 +143,7 @@ class DipoleSet(FieldModel):
         points, moments = torch.broadcast_tensors(points, moments)
         step = max(1, _CHUNK_ELEMENTS // max(1, self.count))
         parts = [self._wrench(points[..., i:i + step, :], moments[..., i:i + step, :])
-                 for i in range(0, points.shape[-2], step)]
+                 for i in range(0, max(1, points.shape[-2]), step)]  # one (empty) chunk for no points
         return torch.cat([f for f, _ in parts], -2), torch.cat([t for _, t in parts], -2)
 
     def _wrench(self, points, mt):
