@@ -269,8 +269,10 @@ def test_bad_input_is_rejected_with_the_parameter_name():
         CuboidMagnet(dimensions=(0.02, 0.02, 0.02)).field_model(8).field(torch.tensor([[0.005, 0.0, 0.0]], dtype=D))
     with pytest.raises(ValueError, match="volume"):
         moment_from_remanence(1.3, 0.0)
-    with pytest.raises(ValueError, match="B"):
+    with pytest.raises(ValueError, match=r"B must be a finite \(\.\.\., 3\) field in tesla, got shape \(2,\)$"):
         UniformField([0.0, 1.0])
+    with pytest.raises(ValueError, match=r"got shape \(3,\) with non-finite values"):  # it named only the shape
+        UniformField([0.0, float("nan"), 0.0])
     with pytest.raises(ValueError, match="count"):
         CuboidMagnet(dimensions=(0.01, 0.01, 0.01)).dipoles(0)
 

@@ -113,7 +113,8 @@ class UniformField(FieldModel):
         if not callable(B):
             B = torch.as_tensor(B)
             if B.shape[-1:] != (3,) or not bool(torch.isfinite(B).all()):
-                raise ValueError(f"B must be a finite (..., 3) field in tesla, got shape {tuple(B.shape)}")
+                raise ValueError(f"B must be a finite (..., 3) field in tesla, got shape {tuple(B.shape)}"
+                                 f"{'' if bool(torch.isfinite(B).all()) else ' with non-finite values'}")
         self.B = B
 
     def _at(self, t, points: Tensor) -> Tensor:

@@ -356,7 +356,8 @@ class NestedHelmholtz(FieldModel):
         :meth:`centre_matrix`."""
         B = torch.as_tensor(B, dtype=torch.get_default_dtype()) if not isinstance(B, Tensor) else B
         if B.shape[-1:] != (3,) or not bool(torch.isfinite(B).all()):
-            raise ValueError(f"B must be a finite (..., 3) field, got shape {tuple(B.shape)}")
+            raise ValueError(f"B must be a finite (..., 3) field, got shape {tuple(B.shape)}"
+                             f"{'' if bool(torch.isfinite(B).all()) else ' with non-finite values'}")
         A = (self.centre_matrix() if centre_matrix is None else centre_matrix).to(dtype=torch.float64, device=B.device)
         Bd = B.to(torch.float64)
         I = (torch.linalg.pinv(A) @ Bd[..., None])[..., 0]
