@@ -153,3 +153,35 @@ def test_controllers_choose_valid_actions():
     errt.reset(info)
     a = errt.act(obs, info)
     assert a in (0, 1, 2, 3) and errt.replans == 1 and len(errt.rects) > 0
+
+
+def test_planners_reject_bad_input_instead_of_a_silent_result():
+    planner = ERRT((0, 0, 1, 1), step=0.05, seed=0)
+    with pytest.raises(ValueError, match=r"rects must be \(n, 4\)"):  # was silently reshaped into 3 rectangles
+        planner.plan((0.1, 0.1), (0.9, 0.9), np.zeros((2, 6)))
+    for start in ((math.nan, 0.1), (0.1, 0.1, 0.0)):
+        with pytest.raises(ValueError, match="start must be 2 finite coordinates"):
+            planner.plan(start, (0.9, 0.9), np.zeros((0, 4)))
+    with pytest.raises(ValueError, match="goal must be 2 finite coordinates"):
+        planner.plan((0.1, 0.1), (0.9, math.inf), np.zeros((0, 4)))
+    with pytest.raises(ValueError, match="max_nodes an int >= 1"):
+        ERRT((0, 0, 1, 1), max_nodes=2.5)
+    with pytest.raises(ValueError, match="bounds must be"):
+        ERRT((0, 0, math.inf, 1))
+    dyn = AttractorDynamics(2.0)
+    for h in (0.0, -0.1, math.nan):  # a negative step walked away from the goal, NaN gave NaN
+        with pytest.raises(ValueError, match="h .*must be finite and > 0"):
+            dyn.step((0.0, 0.0), (1.0, 0.0), [], h)
+    with pytest.raises(ValueError, match="p must be 2 finite coordinates"):
+        dyn.velocity((math.nan, 0.0), (1.0, 0.0), [Superellipse((0.5, 0.5), 0.1, 0.1)])
+    with pytest.raises(ValueError, match="goal must be 2 finite coordinates"):
+        dyn.velocity((0.0, 0.0), (1.0, 0.0, 0.0), [])
+    with pytest.raises(ValueError, match="A and B must be 2x2"):
+        AttractorDynamics(2.0, A=np.eye(3))
+    with pytest.raises(ValueError, match="center, a, b, angle and n must be finite"):
+        Superellipse((math.nan, 0.0), 0.1, 0.1)
+    with pytest.raises(ValueError, match="v must be a finite 2-D direction"):  # was the move +x
+        direction_to_action((math.nan, 0.0))
+    for cls in (AttractorController, ERRTController):
+        with pytest.raises(ValueError, match="mpp"):
+            cls(0.0)

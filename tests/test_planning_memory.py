@@ -60,6 +60,16 @@ def test_goal_within_lookahead_is_the_waypoint_and_bad_input():
         pl.reset((0.0, 0.0, 0.0, 0.3), (0.1, 0.1))
     with pytest.raises(RuntimeError, match="reset"):
         MemoryPlanner(MPP).plan((0.1, 0.1))
+    for goal in ((0.5, 0.15), (float("nan"), 0.15)):  # a goal off the map was clipped to its edge: every move inf
+        with pytest.raises(ValueError, match="goal_xy must be a finite point inside bounds"):
+            pl.reset(BOUNDS, goal)
+    with pytest.raises(ValueError, match="bounds must be finite"):
+        pl.reset((0.0, 0.0, float("inf"), 0.3), (0.1, 0.1))
+    pl.reset(BOUNDS, (0.25, 0.15))
+    with pytest.raises(ValueError, match="ee_xy must be 2 finite coordinates"):
+        pl.plan((float("nan"), 0.15))
+    with pytest.raises(ValueError, match=r"view must be a square \(n, n\)"):
+        pl.add_view(np.full((84, 40), 230, np.uint8), (0.12, 0.15))
 
 
 pytest.importorskip("pybullet")

@@ -327,3 +327,24 @@ def test_bad_inputs(tmp_path):
                     ({"at_steps": (3, -1)}, r"at_steps must be step numbers")):
         with pytest.raises(ValueError, match=msg):
             DisturbanceConfig(**kw)
+
+
+def test_a_given_start_or_goal_gets_a_connected_partner():
+    """Two parallel corridors: the sampled goal of a given start (and start of a given goal) is in its corridor,
+    at least ``min_start_goal_distance`` away (it was drawn anywhere: 'not reachable' in about half the seeds)."""
+    img = np.full((75, 150), WALL, np.uint8)
+    img[5:30, 5:145] = img[45:70, 5:145] = FREE
+    env = make([Map(img, 0.002, (-0.15, 0.35), name="two")])
+    given = (-0.105, 0.465)
+    for seed in range(8):
+        for key, other in (("start", "goal_xy"), ("goal", "ee_xy")):
+            _, info = env.reset(seed=seed, options={key: given})
+            assert abs(info[other][1] - given[1]) < 0.03 and math.dist(info[other], given) >= 0.1 - 1e-9
+    for idx in (1.5, "0", True):
+        with pytest.raises(ValueError, match=r"options\['map_index'\] must be an int"):
+            env.reset(seed=0, options={"map_index": idx})
+    with pytest.raises(ValueError, match="start must be 2 finite coordinates"):
+        env.reset(seed=0, options={"start": (-0.105, 0.465, 0.0)})
+    with pytest.raises(ValueError, match="origin must be 2 finite coordinates"):
+        Map(img, 0.002, (math.nan, 0.35))
+    env.close()

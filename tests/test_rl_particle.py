@@ -110,3 +110,15 @@ def test_stability_and_parameter_errors():
     one = direct_force(ParticleParams(), np.array([0.01, 0.0]), dipoles=64)  # a single offset (2,) -> force (3,)
     assert one.shape == (3,) and np.allclose(one, direct_force(ParticleParams(), np.array([[0.01, 0.0]]),
                                                                dipoles=64)[0])
+
+
+def test_bad_duration_and_magnet_parameters(sim):
+    sim.reset(0.0, 0.0)
+    for duration in (-0.1, math.nan):  # a negative duration integrated backwards: the particle flew 0.86 m
+        with pytest.raises(ValueError, match="duration must be finite and >= 0"):
+            sim.advance((0.0, 0.0), (0.02, 0.0), duration)
+    assert sim.position == (0.0, 0.0)
+    with pytest.raises(ValueError, match="magnet_dims must be 3 positive lengths"):  # was a NaN force map
+        ParticleParams(magnet_dims=(math.nan, 0.025, 0.01))
+    with pytest.raises(ValueError, match="magnet_dipoles must be an int >= 1, got 2.5"):  # was silently 2
+        ParticleParams(magnet_dipoles=2.5)

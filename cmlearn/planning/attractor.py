@@ -44,6 +44,9 @@ class Superellipse:
     def __post_init__(self):
         if not (self.a > 0 and self.b > 0 and self.n >= 2):
             raise ValueError(f"need a, b > 0 and n >= 2, got a={self.a}, b={self.b}, n={self.n}")
+        if not (len(self.center) == 2 and all(map(math.isfinite, (*self.center, self.a, self.b, self.angle, self.n)))):
+            raise ValueError(f"center, a, b, angle and n must be finite (center 2 coordinates), got center="
+                             f"{self.center!r}, a={self.a}, b={self.b}, angle={self.angle}, n={self.n}")
 
     def local(self, p) -> tuple[float, float]:
         c, s = math.cos(self.angle), math.sin(self.angle)
@@ -75,6 +78,8 @@ class AttractorDynamics:
             raise ValueError(f"K must be a scalar or 2x2, got shape {self.K.shape}")
         self.A = np.eye(2) if A is None else np.asarray(A, dtype=float)
         self.B = np.eye(2) if B is None else np.asarray(B, dtype=float)
+        if self.A.shape != (2, 2) or self.B.shape != (2, 2):
+            raise ValueError(f"A and B must be 2x2, got shapes {self.A.shape}, {self.B.shape}")
         if not rho > 0:
             raise ValueError(f"rho must be > 0, got {rho}")
         self.G, self.rho = feedback_gain_G(self.K, self.A, self.B), float(rho)
@@ -85,6 +90,9 @@ class AttractorDynamics:
 
     def nominal(self, p, goal) -> np.ndarray:
         p, goal = np.asarray(p, dtype=float), np.asarray(goal, dtype=float)
+        for name, v in (("p", p), ("goal", goal)):
+            if v.shape != (2,) or not np.isfinite(v).all():
+                raise ValueError(f"{name} must be 2 finite coordinates, got {v.tolist()}")
         u = self.G @ goal - self.K @ p
         return self.A @ p + self.B @ u
 
@@ -115,4 +123,6 @@ class AttractorDynamics:
 
     def step(self, p, goal, obstacles, h: float) -> np.ndarray:
         """``p + h M f(p)`` (the thesis's difference scheme)."""
+        if not (math.isfinite(h) and h > 0):
+            raise ValueError(f"h (the step size) must be finite and > 0, got {h}")
         return np.asarray(p, dtype=float) + h * self.velocity(p, goal, obstacles)

@@ -34,7 +34,10 @@ _DIRS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
 
 def direction_to_action(v) -> int:
     """The discrete move (+x, -x, +y, -y) closest in direction to ``v``."""
-    return int(np.argmax(_DIRS @ np.asarray(v, dtype=float)))
+    v = np.asarray(v, dtype=float)
+    if v.shape != (2,) or not np.isfinite(v).all():
+        raise ValueError(f"v must be a finite 2-D direction, got {v.tolist()}")
+    return int(np.argmax(_DIRS @ v))
 
 
 def pixel_to_world(view_xy, rc, size: int, mpp: float):
@@ -71,6 +74,8 @@ def fit_superellipses(view: np.ndarray, view_xy, mpp: float, threshold: int = 50
 class AttractorController:
     def __init__(self, mpp: float, K: float = 2.0, rho: float = 1.0, margin: float = 0.01, tile: int = 14,
                  threshold: int = 50):
+        if not (math.isfinite(mpp) and mpp > 0):
+            raise ValueError(f"mpp (metres per pixel) must be finite and > 0, got {mpp}")
         self.dyn = AttractorDynamics(K, rho)
         self.mpp, self.margin, self.tile, self.threshold = mpp, margin, tile, threshold
         self.obstacles: list[Superellipse] = []
@@ -88,6 +93,8 @@ class AttractorController:
 class ERRTController:
     def __init__(self, mpp: float, bounds=(0.0, 0.0, 1.0, 1.0), margin: float = 0.008, min_size: int = 2, threshold: int = 50,
                  step: float = 0.02, max_nodes: int = 1500, lookahead: float = 0.012, move: float = 0.01, seed: int = 0):
+        if not (math.isfinite(mpp) and mpp > 0):
+            raise ValueError(f"mpp (metres per pixel) must be finite and > 0, got {mpp}")
         self.mpp, self.margin, self.min_size, self.threshold = mpp, margin, min_size, threshold
         self.bounds, self.step, self.max_nodes, self.lookahead, self.seed = bounds, step, max_nodes, lookahead, seed
         self.move = move

@@ -45,12 +45,13 @@ class ERRT:
             self.bounds = tuple(float(v) for v in bounds)
         except (TypeError, ValueError):
             self.bounds = ()
-        if len(self.bounds) != 4 or not (self.bounds[0] < self.bounds[2] and self.bounds[1] < self.bounds[3]):
+        if len(self.bounds) != 4 or not (all(map(math.isfinite, self.bounds)) and self.bounds[0] < self.bounds[2]
+                                         and self.bounds[1] < self.bounds[3]):
             raise ValueError(f"bounds must be (xmin, ymin, xmax, ymax) with min < max, got {bounds!r}")
         if not (0 <= p_goal and 0 <= p_waypoint and p_goal + p_waypoint <= 1):
             raise ValueError(f"need p_goal, p_waypoint >= 0 and p_goal + p_waypoint <= 1, got {p_goal}, {p_waypoint}")
-        if not (step > 0 and max_nodes >= 1):
-            raise ValueError(f"step must be > 0 and max_nodes >= 1, got {step}, {max_nodes}")
+        if not (step > 0 and isinstance(max_nodes, (int, np.integer)) and max_nodes >= 1):
+            raise ValueError(f"step must be > 0 and max_nodes an int >= 1, got {step!r}, {max_nodes!r}")
         if not (margin >= 0 and cache_size >= 0):
             raise ValueError(f"margin (m) and cache_size (waypoints) must be >= 0, got {margin}, {cache_size}")
         self.step, self.p_goal, self.p_waypoint = step, p_goal, p_waypoint
@@ -71,7 +72,13 @@ class ERRT:
 
     def plan(self, start, goal, rects) -> list[tuple[float, float]] | None:
         """Path [start, ..., goal] avoiding ``rects`` (n, 4), or None."""
-        rects = np.asarray(rects, dtype=float).reshape(-1, 4)
+        rects = np.asarray(rects, dtype=float)
+        if rects.size and (rects.ndim not in (1, 2) or rects.shape[-1] != 4):
+            raise ValueError(f"rects must be (n, 4) rectangles (xmin, ymin, xmax, ymax), got shape {rects.shape}")
+        rects = rects.reshape(-1, 4)
+        for name, p in (("start", start), ("goal", goal)):
+            if np.shape(p) != (2,) or not np.isfinite(np.asarray(p, dtype=float)).all():
+                raise ValueError(f"{name} must be 2 finite coordinates (m), got {p!r}")
         start, goal = tuple(map(float, start)), tuple(map(float, goal))
         # a start or goal inside an obstacle has no path; one closer to an obstacle than the margin shrinks it
         clearance = min(self.distance(start, rects), self.distance(goal, rects))

@@ -59,9 +59,12 @@ class MemoryPlanner:
         """Forget everything, or start from ``prior`` (an earlier ``occ``, e.g. of a sweep of the map);
         ``bounds`` = (xmin, ymin, xmax, ymax) of the map (outside is wall)."""
         x0, y0, x1, y1 = map(float, bounds)
-        if not (x1 > x0 and y1 > y0):
-            raise ValueError(f"bounds must be (xmin, ymin, xmax, ymax) with max > min, got {bounds}")
-        self.bounds, self.goal = (x0, y0, x1, y1), (float(goal_xy[0]), float(goal_xy[1]))
+        if not (all(map(math.isfinite, (x0, y0, x1, y1))) and x1 > x0 and y1 > y0):
+            raise ValueError(f"bounds must be finite (xmin, ymin, xmax, ymax) with max > min, got {bounds}")
+        gx, gy = (float(v) for v in goal_xy)
+        if not (x0 <= gx <= x1 and y0 <= gy <= y1):
+            raise ValueError(f"goal_xy must be a finite point inside bounds={bounds}, got {goal_xy!r}")
+        self.bounds, self.goal = (x0, y0, x1, y1), (gx, gy)
         shape = (int(round((y1 - y0) / self.res)) + 1, int(round((x1 - x0) / self.res)) + 1)
         if prior is not None and (np.shape(prior) != shape or np.asarray(prior).dtype != np.int8):
             raise ValueError(f"prior must be an int8 occupancy grid of shape {shape}, got "
@@ -79,6 +82,8 @@ class MemoryPlanner:
         if self.occ is None:
             raise RuntimeError("MemoryPlanner.add_view before reset(bounds, goal_xy)")
         view = np.asarray(view)
+        if view.ndim != 2 or view.shape[0] != view.shape[1]:
+            raise ValueError(f"view must be a square (n, n) grayscale image, got shape {view.shape}")
         n = view.shape[0]
         k = (np.arange(n) + 0.5 - n / 2) * self.mpp
         r, c = np.broadcast_arrays(*self._cells(view_xy[0] + k[None, :], view_xy[1] - k[:, None]))
@@ -101,6 +106,8 @@ class MemoryPlanner:
             raise RuntimeError("MemoryPlanner.plan before reset(bounds, goal_xy)")
         x0, y0, x1, y1 = self.bounds
         ex, ey, s = float(ee_xy[0]), float(ee_xy[1]), self.step
+        if not (math.isfinite(ex) and math.isfinite(ey)):
+            raise ValueError(f"ee_xy must be 2 finite coordinates, got {ee_xy!r}")
         # the lattice through the end-effector over the bounds (and the end-effector, if it is outside)
         kx = (min(0, math.ceil((x0 - ex) / s - 1e-9)), max(0, math.floor((x1 - ex) / s + 1e-9)))
         ky = (min(0, math.ceil((y0 - ey) / s - 1e-9)), max(0, math.floor((y1 - ey) / s + 1e-9)))

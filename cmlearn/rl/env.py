@@ -230,17 +230,18 @@ class MagneticParticleEnv(gym.Env):
         options = dict(options or {})
         rng = self.np_random
         idx = options.get("map_index", int(rng.integers(self.map_count())))
-        if not 0 <= idx < self.map_count():
-            raise ValueError(f"options['map_index'] must be in [0, {self.map_count()}), got {idx}")
+        if not (_count(idx) and idx < self.map_count()):
+            raise ValueError(f"options['map_index'] must be an int in [0, {self.map_count()}), got {idx!r}")
         self.map = self.get_map(idx)
         self.atlas = _cached_atlas(self.map, self.config)
         m = self.map
         if "start" in options or "goal" in options:
             start = m.check_point("start", options["start"]) if "start" in options else None
             goal = m.check_point("goal", options["goal"]) if "goal" in options else None
-            if start is None or goal is None:
-                s, g = m.sample_start_goal(rng, self.config.min_start_goal_distance)
-                start, goal = start or s, goal or g
+            if start is None:  # the other one: connected to the given one and as far away as a sampled pair
+                start = m.sample_partner(rng, goal, self.config.min_start_goal_distance)
+            elif goal is None:
+                goal = m.sample_partner(rng, start, self.config.min_start_goal_distance)
             m.check_reachable(start, goal)
             self._place(m.node_xy(*start), user=True)
         else:

@@ -52,7 +52,9 @@ class Map:
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0 (m), got {v}")
         self.image = np.ascontiguousarray(img)
-        self.origin = (float(self.origin[0]), float(self.origin[1]))
+        self.origin = tuple(float(v) for v in self.origin)
+        if len(self.origin) != 2 or not all(map(math.isfinite, self.origin)):
+            raise ValueError(f"origin must be 2 finite coordinates (m), got {self.origin!r}")
         from scipy.ndimage import distance_transform_edt
         free = self.image >= self.wall_level
         padded = np.pad(free, 1, constant_values=False)  # the outside is a wall
@@ -132,7 +134,7 @@ class Map:
 
     def check_point(self, name: str, xy) -> tuple[int, int]:
         """Grid node of a user start/goal; ``ValueError`` if it is inside (or too close to) a wall."""
-        x, y = (float(v) for v in xy)
+        x, y = (float(v) for v in xy) if np.shape(xy) == (2,) else (math.nan, math.nan)
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError(f"{name} must be 2 finite coordinates (m), got {xy!r}")
         node = self.nearest_node(x, y)
@@ -145,6 +147,15 @@ class Map:
         if not np.isfinite(self.geodesic(goal_node, "safe")[tuple(start_node)]):
             raise ValueError(f"goal node {tuple(goal_node)} is not reachable from start node {tuple(start_node)} "
                              f"through free space with {self.clearance} m clearance")
+
+    def sample_partner(self, rng: np.random.Generator, node, min_distance: float = 0.1) -> tuple[int, int]:
+        """A random safe node connected to ``node`` and at least ``min_distance`` from it along the free space
+        (the start of a given goal, or the goal of a given start)."""
+        dist = self.geodesic(node, "safe")
+        ok = np.argwhere(np.isfinite(dist) & (dist >= min_distance))
+        if not len(ok):
+            raise ValueError(f"map {self.name!r}: no safe node {min_distance} m from node {tuple(node)} is connected to it")
+        return tuple(int(v) for v in ok[rng.integers(len(ok))])
 
     def sample_start_goal(self, rng: np.random.Generator, min_distance: float = 0.1, tries: int = 200):
         """Random connected safe (start, goal) nodes at least ``min_distance`` apart along the free space."""

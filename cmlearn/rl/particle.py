@@ -67,7 +67,7 @@ class ParticleParams:
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
             object.__setattr__(self, name, float(v))  # a numpy number keys the cached maps as its float does
-        if len(self.magnet_dims) != 3 or min(self.magnet_dims) <= 0:
+        if len(self.magnet_dims) != 3 or not all(math.isfinite(v) and v > 0 for v in self.magnet_dims):
             raise ValueError(f"magnet_dims must be 3 positive lengths (m), got {self.magnet_dims!r}")
         # a tuple of floats whatever sequence came in: the params key the cached force maps (hashable)
         object.__setattr__(self, "magnet_dims", tuple(float(v) for v in self.magnet_dims))
@@ -75,8 +75,9 @@ class ParticleParams:
             raise ValueError(f"need 0 <= mu_kinetic <= mu_static, got {self.mu_kinetic}, {self.mu_static}")
         if self.magnet_height - self.magnet_dims[2] / 2 <= self.particle_diameter:
             raise ValueError(f"magnet_height={self.magnet_height} leaves no gap above the particle")
-        if int(self.magnet_dipoles) < 1:
-            raise ValueError(f"magnet_dipoles must be >= 1, got {self.magnet_dipoles}")
+        if isinstance(self.magnet_dipoles, bool) or not isinstance(self.magnet_dipoles, numbers.Integral) \
+                or self.magnet_dipoles < 1:
+            raise ValueError(f"magnet_dipoles must be an int >= 1, got {self.magnet_dipoles!r}")
 
     @property
     def volume(self) -> float:
@@ -195,6 +196,8 @@ class ParticleSim:
         """Simulate ``duration`` s while the magnet's projection moves linearly ``magnet_from`` ->
         ``magnet_to`` (x, y). ``wall(x, y) -> bool`` is polled each sub-step; returns True (and stops)
         when the particle touches a wall."""
+        if not (math.isfinite(duration) and duration >= 0):
+            raise ValueError(f"duration must be finite and >= 0 (s), got {duration}")
         p = self.params
         n = max(1, math.ceil(duration / p.substep - 1e-9))
         dt = duration / n
