@@ -33,6 +33,7 @@ Levenberg-Marquardt shooting in :mod:`physics.cosserat_shooting`, the compiled f
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -44,6 +45,13 @@ from .rod import CircularSection, Material, SquareSection, finite_vector
 __all__ = ["Segment", "MagnetDipole", "CosseratRod", "CosseratParams", "CosseratGrid", "StaticLoads", "broadcast_shape"]
 
 _MERGE = 1e-9  # relative distance under which two breakpoints are the same node
+
+
+def check_integer(name: str, v, lo: int = 1) -> int:
+    """``v`` as an int; ``ValueError`` naming ``name`` unless it is a whole number >= ``lo`` (not NaN, inf, None)."""
+    if not (isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and int(v) == v and v >= lo):
+        raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+    return int(v)
 
 
 @dataclass(frozen=True)
@@ -160,8 +168,7 @@ class CosseratRod:
             if not (math.isfinite(x) and 0 <= x <= L * (1 + 1e-12)):
                 raise ValueError(f"CosseratRod.load_points[{i}] = {x!r} m lies outside the rod [0, {L:g}] m")
         object.__setattr__(self, "load_points", pts)
-        if int(self.n_nodes) != self.n_nodes or self.n_nodes < 2:
-            raise ValueError(f"CosseratRod.n_nodes must be an integer >= 2, got {self.n_nodes!r}")
+        check_integer("CosseratRod.n_nodes", self.n_nodes, 2)
         object.__setattr__(self, "grid", self._make_grid())
 
     @property
@@ -239,6 +246,8 @@ class CosseratRod:
             mom = torch.as_tensor(magnet_moments, **kw)
             if mom.shape[-2:] != (K, 3):
                 raise ValueError(f"magnet_moments must have shape (..., {K}, 3), got {tuple(mom.shape)}")
+            if not bool(torch.isfinite(mom).all()):
+                raise ValueError("magnet_moments must be finite (A m^2)")
         idx = torch.tensor(self.grid.step_segment, dtype=torch.long, device=device)
         return CosseratParams(
             ks_inv=(1.0 / Ks)[..., idx, :], kb_inv=(1.0 / Kb)[..., idx, :],

@@ -20,6 +20,7 @@ import math
 import torch
 from torch import Tensor
 
+from .cosserat import check_integer
 from .cosserat_fast import chord_setup, flatten_field, lm_setup, run_chord, run_lm
 from .cosserat_shooting import (_LAM_WARM, CHORD_MAX, CosseratSolver, StaticSolution, _broadcasts_to, _needs_grad,
                                 tensor_versions)
@@ -39,10 +40,8 @@ class FrameSolve:
                  **loads):
         if not isinstance(solver, CosseratSolver):
             raise TypeError(f"solver must be a CosseratSolver, got {type(solver).__name__}")
-        max_iter = solver.max_iter if max_iter is None else max_iter
-        if int(max_iter) != max_iter or max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-        self.solver, self.max_iter, self.t, self.load_kw = solver, int(max_iter), float(t), loads
+        max_iter = check_integer("max_iter", solver.max_iter if max_iter is None else max_iter)
+        self.solver, self.max_iter, self.t, self.load_kw = solver, max_iter, float(t), loads
         self.compiled = bool(compiled)
         self._loads = solver._loads(dict(loads))  # checked once (make_loads)
         self._fkey = None  # the field structure, shapes and solver parameters the programs below were set up for

@@ -16,6 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .cosserat import check_integer
 from .cosserat_shooting import CosseratSolver, StaticSolution
 from .loads import UniformField
 
@@ -60,6 +61,9 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
         raise ValueError("fit_uniform_field: the rod has no magnets")
     if not math.isfinite(target_angle) or abs(target_angle) >= math.pi:
         raise ValueError(f"target_angle must be finite and in (-pi, pi), got {target_angle!r}")
+    if magnitude is not None and not (math.isfinite(magnitude) and magnitude > 0):
+        raise ValueError(f"magnitude (the start's field strength, T) must be finite and > 0, got {magnitude!r}")
+    check_integer("max_evals", max_evals)
     kw = dict(dtype=solver.dtype, device=solver.device)
     mu = max(math.sqrt(sum(c * c for c in m.moment)) for m in rod.magnets[-1:])
     b_ref = magnitude if magnitude is not None else max(rod.bending_scale * abs(target_angle) / (rod.length * mu), 1e-6)

@@ -54,12 +54,13 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape
+from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape, check_integer
 from .cosserat_ode import quat_matrix, shoot
 from .cosserat_fast import fast_chord, fast_lm, flatten_field
 from .cosserat_lanes import lane_chunk, lane_step, lane_tables, shoot_lanes, step_table
@@ -183,13 +184,11 @@ class CosseratSolver:
         if jacobian not in ("forward", "jacfwd"):
             raise ValueError(f"jacobian must be 'forward' or 'jacfwd', got {jacobian!r}")
         tol = (1e-10 if dtype == torch.float64 else 1e-4) if tol is None else tol
-        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
             raise ValueError(f"tol must be a finite positive number, got {tol!r}")
-        if int(max_iter) != max_iter or max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
         self.rod, self.dtype, self.device = rod, dtype, device
-        self.tol, self.max_iter, self.jacobian = float(tol), int(max_iter), jacobian
-        self.params = rod.params(dtype, device) if params is None else params
+        self.tol, self.max_iter, self.jacobian = float(tol), check_integer("max_iter", max_iter), jacobian
+        self.params = rod.params(dtype, device) if params is None else self._check_params(params)
         L, EI = rod.length, rod.bending_scale
         self.scales = (EI / L**2, EI / L)
         if fd_step is not None and not (math.isfinite(fd_step) and fd_step > 0):
@@ -202,16 +201,28 @@ class CosseratSolver:
         if self.compile and jacobian != "forward":
             raise ValueError("compile=True needs jacobian='forward'")
         self._step_key, self._step_ver, self._step_tab = None, None, None
-        if int(steps_per_call) != steps_per_call or steps_per_call < 1:
-            raise ValueError(f"steps_per_call must be an integer >= 1, got {steps_per_call!r}")
-        self.steps_per_call = int(steps_per_call)
+        self.steps_per_call = check_integer("steps_per_call", steps_per_call)
         self._math, step1, chunk = _compiled() if compile else (_lm_math, lane_step, lane_chunk)
         self._lane_step = step1 if self.steps_per_call == 1 else chunk
         self._loads_cache: dict = {}
         self._field_shapes: dict = {}
-        if int(chord_block) != chord_block or chord_block < 1:
-            raise ValueError(f"chord_block must be an integer >= 1, got {chord_block!r}")
-        self.chord_block = int(chord_block)
+        self.chord_block = check_integer("chord_block", chord_block)
+
+    def _check_params(self, prm) -> CosseratParams:
+        """``prm`` unless it does not fit the solver: not :class:`~physics.cosserat.CosseratParams`, another dtype,
+        or made for another grid or number of magnets (another rod or ``n_nodes``)."""
+        if not isinstance(prm, CosseratParams):
+            raise TypeError(f"params must be CosseratParams (CosseratRod.params), got {type(prm).__name__}")
+        for nm, v in zip(prm._fields, prm):
+            if v.dtype != self.dtype:
+                raise TypeError(f"params.{nm} has dtype {v.dtype}, the solver's is {self.dtype} "
+                                f"(make them with rod.params({self.dtype}))")
+        S, K = len(self.rod.grid.h), len(self.rod.magnets)
+        if prm.ks_inv.shape[-2:] != (S, 3) or prm.magnet_moment.shape[-2:] != (K, 3):
+            raise ValueError(f"params are for {prm.ks_inv.shape[-2]} RK4 steps and {prm.magnet_moment.shape[-2]} "
+                             f"magnets, the solver's rod has {S} steps (n_nodes - 1) and {K} magnets "
+                             f"(make them with this rod's params())")
+        return prm
 
     # ------------------------------------------------------------------ inputs
     def make_loads(self, *, gravity=None, point_forces=None, point_torques=None, tip_force=None, tip_moment=None,
@@ -343,21 +354,23 @@ class CosseratSolver:
         whenever an input requires grad) adds the implicit-function correction that makes the result
         differentiable."""
         loads = load_kw.pop("loads", None)
+        if loads is not None and load_kw:
+            raise ValueError(f"give the loads either as loads= or as keywords, not both (got loads= and "
+                             f"{', '.join(sorted(load_kw))}=)")
         loads = self._loads(load_kw) if loads is None else loads
         if field is not None and not callable(field) and not hasattr(field, "wrench"):
             raise TypeError("field must be callable as field(t, positions) -> B | (B, dB) or have "
                             "wrench(t, positions, moments)")
         max_iter = self.max_iter if max_iter is None else max_iter
         for nm, v in (("load_steps", load_steps), ("max_load_steps", max_load_steps), ("max_iter", max_iter)):
-            if int(v) != v or v < 1:
-                raise ValueError(f"{nm} must be an integer >= 1, got {v!r}")
+            check_integer(nm, v)
         if chord is not None:
             if load_steps != 1:
                 raise ValueError(f"chord iterations need load_steps=1, got load_steps={load_steps}")
             if not isinstance(chord, Tensor) or chord.shape[-2:] != (6, 6) or not bool(torch.isfinite(chord).all()):
                 raise ValueError("chord must be a finite scaled Jacobian (..., 6, 6) (a StaticSolution's jacobian), "
                                  f"got {chord.shape if isinstance(chord, Tensor) else type(chord).__name__}")
-        prm = self.params if params is None else params
+        prm = self.params if params is None else self._check_params(params)
         kw = dict(dtype=self.dtype, device=self.device)
         sc = self._sc
         if init is None:
@@ -445,6 +458,9 @@ class CosseratSolver:
         pos = loads.base_position.detach().unsqueeze(-2)
         B = getattr(field, "B", None)
         if isinstance(field, UniformField) and isinstance(B, Tensor):  # B (..., 1, 3) for a batch
+            if B.dim() > 1 and B.shape[-2] != 1:
+                raise ValueError(f"field: a batch of UniformField's B must have shape (..., 1, 3) (a single point per "
+                                 f"problem), got {tuple(B.shape)}; use B[..., None, :]")
             return B.shape[:-2]
         key = None if flat is None else (flat[0], tuple(pos.shape), float(t))
         if key is not None and key in self._field_shapes:

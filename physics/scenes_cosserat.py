@@ -51,6 +51,12 @@ class LinearField:
         self.B0 = torch.as_tensor(B0)
         self.G = torch.zeros(3, 3, dtype=self.B0.dtype) if G is None else torch.as_tensor(G)
         self.x0 = torch.as_tensor(x0, dtype=self.B0.dtype)
+        for nm, v, shape in (("B0", self.B0, "(..., 3)"), ("G", self.G, "(..., 3, 3)"), ("x0", self.x0, "(3,)")):
+            want = (3,) if nm != "G" else (3, 3)
+            if v.shape[max(v.dim() - len(want), 0):] != want or (nm == "x0" and v.dim() != 1) \
+                    or not bool(torch.isfinite(v).all()):
+                raise ValueError(f"LinearField.{nm} must be finite with shape {shape}, got shape {tuple(v.shape)}"
+                                 f"{'' if bool(torch.isfinite(v).all()) else ' with non-finite values'}")
 
     def __call__(self, t, positions: Tensor):
         B0, G = self.B0.to(positions), self.G.to(positions)  # the points' dtype and device
@@ -89,7 +95,9 @@ class CosseratScene:
         return FrameSolve(solver, **self._posed(kw))
 
     def _posed(self, kw: dict) -> dict:
-        """``kw`` with the scene's gravity and base pose where it does not give them."""
+        """``kw`` with the scene's gravity and base pose where it does not give them (nor ``loads=``)."""
+        if "loads" in kw:
+            return kw
         return {"gravity": self.gravity, "base_quaternion": self.base_quaternion, **kw}
 
 

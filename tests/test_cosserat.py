@@ -462,3 +462,73 @@ def test_a_shot_that_runs_off_gives_a_nan_residual_not_a_field_error():
     for tangent in (False, True):
         r = shoot(x, solver.params, rod.grid, solver.make_loads(), solver.scales, field, tangent=tangent).r
         assert bool(torch.isfinite(r[0]).all()) and not bool(torch.isfinite(r[1]).any())
+
+
+def test_integer_and_tolerance_arguments_name_themselves():
+    """NaN, inf or None for a count gave "cannot convert float NaN to integer" or an int() TypeError naming nothing;
+    a numpy float tolerance was refused as not "a finite positive number"."""
+    from physics.cosserat_frames import FrameSolve
+    base = steel_like_rod()
+    for v in (float("nan"), float("inf"), None):
+        with pytest.raises(ValueError, match="CosseratRod.n_nodes must be an integer >= 2"):
+            CosseratRod.uniform(0.2, base.section, base.material, n_nodes=v)
+        with pytest.raises(ValueError, match="max_iter must be an integer >= 1"):
+            CosseratSolver(uniform(base, 13), max_iter=v)
+    solver = CosseratSolver(uniform(base, 13))
+    with pytest.raises(ValueError, match="max_iter must be an integer >= 1, got nan"):
+        solver.solve(max_iter=float("nan"))
+    with pytest.raises(ValueError, match="max_iter must be an integer >= 1, got inf"):
+        FrameSolve(solver, max_iter=float("inf"))
+    with pytest.raises(ValueError, match="max_load_steps must be an integer >= 1, got nan"):
+        solver.solve(max_load_steps=float("nan"))
+    assert CosseratSolver(uniform(base, 13), tol=np.float32(1e-6)).tol == pytest.approx(1e-6)
+
+
+def test_params_and_loads_that_do_not_fit_the_solver_are_refused():
+    """Parameters of another dtype failed deep in torch ("expected m1 and m2 to have the same dtype"); those of
+    another rod or node count were used silently on the wrong grid; ``loads=`` beside load keywords dropped the
+    keywords silently (a tip force that did nothing)."""
+    base = steel_like_rod()
+    L, soft = base.length, base.material
+    stiff = Material(E=4 * soft.E, density=1000.0, nu=0.3)
+    rod = CosseratRod((Segment(0.3 * L, base.section, stiff), Segment(0.7 * L, base.section, soft)), n_nodes=13,
+                      magnets=(MagnetDipole(L, (0.0, 0.0, 1e-3)),))
+    solver = CosseratSolver(rod)
+    with pytest.raises(TypeError, match=r"params.ks_inv has dtype torch.float32, the solver's is torch.float64"):
+        solver.solve(params=rod.params(torch.float32))
+    with pytest.raises(TypeError, match="params.ks_inv has dtype torch.float32"):
+        CosseratSolver(rod, params=rod.params(torch.float32))
+    finer = CosseratRod(rod.segments, n_nodes=21, magnets=rod.magnets)
+    with pytest.raises(ValueError, match=r"params are for 20 RK4 steps and 1 magnets, the solver's rod has 12 steps"):
+        solver.solve(params=finer.params(D))
+    loads = solver.make_loads(gravity=G)
+    with pytest.raises(ValueError, match=r"either as loads= or as keywords, not both \(got loads= and tip_force=\)"):
+        solver.solve(loads=loads, tip_force=(1e-3, 0.0, 0.0))
+    sc = paper2_magnetic_rod()
+    s2 = CosseratSolver(sc.rod)
+    own = sc.solve(s2, loads=s2.make_loads(gravity=sc.gravity, base_quaternion=sc.base_quaternion))
+    assert (own.p - sc.solve(s2).p).abs().max() < 1e-12  # a scene's solve takes loads= (its pose not added)
+
+
+def test_bad_field_and_magnet_input_raise_clear_errors():
+    """A NaN in a LinearField or in the magnets' moments ran Levenberg-Marquardt and its load-stepping retries
+    for up to a minute into "did not converge"; a LinearField of a wrong shape, a batch of UniformFields without
+    the point axis (B (2, 3)) failed deep in torch ("The expanded size of the tensor ..."); fit_uniform_field
+    returned a zero field for magnitude=0."""
+    rod = tip_magnet_rod()
+    with pytest.raises(ValueError, match=r"LinearField.B0 must be finite with shape \(\.\.\., 3\), got shape \(3,\) "
+                                         r"with non-finite values"):
+        LinearField(torch.tensor([0.01, float("nan"), 0.0], dtype=D))
+    with pytest.raises(ValueError, match=r"LinearField.G must be finite with shape \(\.\.\., 3, 3\), got shape \(2, 2\)"):
+        LinearField([0.01, 0.0, 0.0], [[0.1, 0.0], [0.0, 0.1]])
+    with pytest.raises(ValueError, match=r"LinearField.x0 must be finite with shape \(3,\), got shape \(2,\)"):
+        LinearField([0.01, 0.0, 0.0], x0=(0.0, 0.0))
+    with pytest.raises(ValueError, match="magnet_moments must be finite"):
+        rod.params(D, magnet_moments=torch.tensor([[float("nan"), 0.0, 0.0]], dtype=D))
+    B = torch.tensor([[0.0, 0.01, 0.0], [0.01, 0.0, 0.0]], dtype=D)
+    with pytest.raises(ValueError, match=r"UniformField's B must have shape \(\.\.\., 1, 3\) .* got \(2, 3\)"):
+        CosseratSolver(rod).solve(field=UniformField(B))
+    with pytest.raises(ValueError, match="magnitude .* must be finite and > 0, got 0.0"):
+        fit_uniform_field(CosseratSolver(rod), 0.5, magnitude=0.0)
+    with pytest.raises(ValueError, match="max_evals must be an integer >= 1, got 0"):
+        fit_uniform_field(CosseratSolver(rod), 0.5, max_evals=0)
