@@ -97,11 +97,13 @@ class DistributedDampingFilter:
         if self.isotropic:
             P = lam * fs.P + (B * Rw * B).sum(-1, keepdim=True)
             Q = lam * fs.Q + (B * Rw * r).sum(-1, keepdim=True)
-            K = (Q / (P + self._W.mean())).expand_as(B)
+            den = P + self._W.mean()
         else:
             P = lam * fs.P + B * Rw * B
             Q = lam * fs.Q + B * Rw * r
-            K = Q / (P + self._W)
+            den = P + self._W
+        # with W = 0, no motion yet along an axis (or a clamped node) is 0/0: no information, K = 0
+        K = torch.where(den > 0, Q / den.clamp_min(torch.finfo(den.dtype).tiny), 0.0).expand_as(B)
         v_next = (y_next - fs.y) / h * m._free
         return DampingFilterState(fs.t + h, y_next, v_next, R1, pi1, P, Q, K * m._free, r)
 

@@ -166,7 +166,9 @@ def matrix_to_quat(R: Tensor) -> Tensor:
 
 
 def _axis_rot(theta: Tensor | float, axis: int, dtype=None, device=None) -> Tensor:
-    th = torch.as_tensor(theta, dtype=dtype or torch.get_default_dtype(), device=device)
+    if dtype is None:  # a floating-point tensor keeps its precision
+        dtype = theta.dtype if torch.is_tensor(theta) and theta.is_floating_point() else torch.get_default_dtype()
+    th = torch.as_tensor(theta, dtype=dtype, device=device)
     w = torch.zeros(*th.shape, 3, dtype=th.dtype, device=th.device)
     w[..., axis] = th
     return so3_exp(w)

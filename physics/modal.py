@@ -83,7 +83,10 @@ def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elast
     if A.shape[0] <= _DENSE_MAX:
         lam = scipy.linalg.eigh(A.toarray(), eigvals_only=True, subset_by_index=[0, k - 1])
     else:
-        lam = np.sort(scipy.sparse.linalg.eigsh(A.tocsc(), k=k, sigma=-1e-6, which="LM",
+        # shift-invert just below 0, scaled to A: a fixed shift is lost in round-off beside stiff entries and
+        # leaves the free-free (singular) A singular or lets rigid modes pass for elastic ones
+        sigma = -1e-10 * float(abs(A.diagonal()).max())
+        lam = np.sort(scipy.sparse.linalg.eigsh(A.tocsc(), k=k, sigma=sigma, which="LM",
                                                 return_eigenvectors=False))
     lam = lam[n_rigid:]
     return torch.tensor(np.sqrt(np.clip(lam, 0.0, None)), dtype=torch.float64)

@@ -33,15 +33,19 @@ def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=
                        tol: float = 1e-10, rounds: int = 4) -> tuple[Tensor, Tensor]:
     """Equilibrium configuration near ``(p0, R0)`` (float64 (n, 3), (n, 3, 3)).
 
-    ``fixed`` node indices keep their pose; ``gravity`` (3,) m/s^2; ``field`` a uniform field (3,)
-    in tesla acting on the rod's magnets. ``tol`` bounds the residual node forces and torques,
+    ``fixed`` node indices (negative ones from the tip) keep their pose; ``gravity`` (3,) m/s^2;
+    ``field`` a uniform field (3,) in tesla acting on the rod's magnets. ``tol`` bounds the residual node forces and torques,
     relative to ``E I / (L l_min)`` and ``E I / L`` (``l_min`` the shortest element: a node's force
     grows with its elements' length). Raises :class:`~physics.errors.SolverError` if it
     does not converge.
     """
     prm = rod.params(torch.float64)
     n = rod.n_nodes
-    free = torch.tensor([i for i in range(n) if i not in set(fixed)], dtype=torch.long)
+    fixed = tuple(int(i) for i in fixed)
+    if not all(-n <= i < n for i in fixed):
+        raise ValueError(f"static_equilibrium: fixed node indices must lie in [-{n}, {n - 1}], got {fixed}")
+    fixed = {i % n for i in fixed}  # negative indices count from the tip, as in Python
+    free = torch.tensor([i for i in range(n) if i not in fixed], dtype=torch.long)
     k = len(free)
     lchar, L = min(rod.lengths), rod.length
     EI = min(rod.C2[:2])

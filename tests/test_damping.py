@@ -76,3 +76,18 @@ def test_filter_input_validation(reference):
         filt.init(traj.p[0], traj.p[1][:-1], traj.R[1])
     with pytest.raises(ValueError, match="at least 3"):
         filt.run(traj.p[:2], traj.R[1])
+
+
+def test_zero_regularisation_gives_no_nan(reference):
+    # W = 0 (allowed: positive semi-definite) is 0/0 at the clamped node and on axes not yet moving
+    rod, v, traj, model = reference
+    p = traj.p[:200]
+    for isotropic in (False, True):
+        filt = DistributedDampingFilter(model, W=0.0, forgetting=0.995, isotropic=isotropic)
+        fs, hist = filt.run(p, traj.R[1])
+        assert torch.isfinite(hist).all()
+        assert torch.equal(fs.K[0], torch.zeros(3, dtype=D))
+        true = C_TRUE * rod.node_weights()[1:, None]
+        assert float(((fs.K[1:, :2] - true).abs() / true).max()) < 0.1
+    p_filtered, _ = run_filtered_model(model, model.initial_state(v=v), filt, p)
+    assert torch.isfinite(p_filtered).all()

@@ -68,3 +68,30 @@ def test_half_turn_element_raises():
                      torch.eye(3, dtype=torch.float64)])
     with pytest.raises(SolverError, match="half turn"):
         relative_cayley(R)
+
+
+def test_static_equilibrium_fixed_counts_negative_indices_from_the_tip():
+    from physics.relax import static_equilibrium
+    from problems import steel_like_rod
+    rod = steel_like_rod(6)
+    n = rod.n_nodes
+    p0 = torch.zeros(n, 3, dtype=torch.float64)
+    p0[:, 2] = rod.arclength
+    R0 = torch.eye(3, dtype=torch.float64).expand(n, 3, 3).clone()
+    g = (0.0, -0.01, 0.0)
+    p, _ = static_equilibrium(rod, p0, R0, gravity=g, fixed=(0, -1))
+    assert torch.equal(p[-1], p0[-1])  # the tip stays clamped
+    p_ref, _ = static_equilibrium(rod, p0, R0, gravity=g, fixed=(0, n - 1))
+    assert torch.allclose(p, p_ref, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="fixed"):
+        static_equilibrium(rod, p0, R0, gravity=g, fixed=(0, n))
+
+
+def test_sparse_free_free_frequencies_match_dense(monkeypatch):
+    import physics.modal as modal
+    rod = aluminium_rod(20)
+    dense = modal.frequencies(rod, "free-free", 3)
+    monkeypatch.setattr(modal, "_DENSE_MAX", 0)  # the path taken by fine meshes (> 1500 DOFs)
+    sparse = modal.frequencies(rod, "free-free", 3)
+    assert torch.allclose(sparse, dense, rtol=1e-6)
+    assert torch.allclose(modal.frequencies(rod, "clamped-free", 3), rod.natural_frequencies(n_modes=3), rtol=1e-6)

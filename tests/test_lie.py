@@ -100,3 +100,12 @@ def test_exp_gradient_is_finite_at_zero():
     w2 = torch.zeros(3, dtype=D, requires_grad=True)
     so3_log(so3_exp(w2)).sum().backward()
     assert torch.allclose(w2.grad, torch.ones(3, dtype=D))
+
+
+def test_axis_rotations_keep_a_tensor_angle_precision():
+    th = torch.tensor([0.1, 1.0 + 1e-12], dtype=D)
+    R = rot_z(th)
+    assert R.dtype == D  # not the float32 default
+    assert torch.allclose(R, so3_exp(th[:, None] * torch.tensor([0.0, 0.0, 1.0], dtype=D)), atol=1e-15)
+    assert rot_x(0.3).dtype == torch.get_default_dtype()
+    assert rot_y(torch.tensor(0.3, dtype=D), dtype=torch.float32).dtype == torch.float32
