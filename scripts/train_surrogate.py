@@ -182,6 +182,9 @@ def parse(argv=None) -> Args:
     if a.init_from and a.resume:
         ap.error("--init-from and --resume exclude each other: --resume restores a Lightning run (weights, "
                  "optimiser and schedule), --init-from only the weights of a cmlearn checkpoint")
+    if a.keep_top_k == 0:
+        ap.error("--keep-top-k must be >= 1 or -1 (every epoch), got 0: with none kept no epoch is selected, and the "
+                 "last one would ship")
     if a.devices > 1 and not a.ddp:
         ap.error(f"--devices must be 1, or more with --ddp (one training process each), got {a.devices}")
     if a.quick:  # smoke-test budget: a short scene, few variants, two epochs

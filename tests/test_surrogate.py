@@ -205,6 +205,25 @@ def test_validation_tail_of_the_printed_scene(tiny):
         SurrogateDataModule(tiny, eta=2, horizon=2, val_dataset=tiny, val_tail=0.2)
 
 
+def test_windows_and_splits_refuse_ranges_outside_the_data():
+    """A range past the data's last frame or variant (as ``train_fraction`` > 1 gave) made short or empty windows
+    silently; a horizon of 0 windows without a future."""
+    P, wr = torch.zeros(2, 20, 4, 3), torch.zeros(2, 19, 3, 3)
+    assert len(RolloutWindows(P, wr, [(1, 0, 19)], eta=2, horizon=4)) == 14
+    for ranges, kw, msg in (([(0, 0, 40)], {}, r"ranges \[\(0, 0, 40\)\] lie outside the data"),
+                            ([(2, 0, 19)], {}, r"ranges \[\(2, 0, 19\)\] lie outside the data"),
+                            ([(0, 0, 19)], {"horizon": 0}, "horizon >= 1, got eta 2 and horizon 0"),
+                            ([(0, 0, 19)], {"wrench": wr[:, :10]}, r"wrench \(2, 10, 3, 3\) must hold the T - 1")):
+        args = {"eta": 2, "horizon": 4, "wrench": wr, **kw}
+        with pytest.raises(ValueError, match=msg):
+            RolloutWindows(P, args.pop("wrench"), ranges, **args)
+    for kw, msg in (({"train_fraction": 1.5}, r"train_fraction must lie in \(0, 1\), got 1.5"),
+                    ({"train_fraction": 0.0}, r"train_fraction must lie in \(0, 1\), got 0.0"),
+                    ({"val_variants": -1}, "val_variants must be >= 0, got -1")):
+        with pytest.raises(ValueError, match=msg):
+            split_ranges(3, 31, **kw)
+
+
 def test_the_printed_scene_can_keep_its_share_of_the_training(tiny):
     """printed_repeat: the printed scene's training windows (variant 0, before the cut) appear that many
     times in a training epoch; the other variants', validation and the scales' positions do not change."""
@@ -273,6 +292,54 @@ def test_zero_network_continues_the_motion_and_engine_equals_the_model(tiny):
     assert torch.allclose(model(hist, W[:1][None].squeeze(0), rolled[:1]), frozen, atol=1e-7)
     fr = free_running(model, *from_rest(rolled, W, 2), 2)
     assert torch.allclose(fr, rolled[1:], atol=1e-6)
+
+
+def test_a_step_refuses_a_history_of_another_length_and_misshapen_inputs():
+    """A history of more or fewer than eta + 1 frames stepped silently (the LSTM runs any length); the other
+    misshapen inputs and a rollout without a step or with too few anchor frames failed deep in torch."""
+    task = get_task("semicircle")
+    model = live_head(tiny_model(task))
+    N, K = len(task.tracked), len(task.modeled)
+    hist, w, ref = torch.zeros(2, 3, N, 3), torch.zeros(2, K, 3), torch.zeros(2, N, 3)
+    assert model(hist, w, ref).shape == (2, K, 3)
+    for args, msg in (
+            ((torch.zeros(2, 5, N, 3), w, ref), rf"hist must be .* = \(2, 3, {N}, 3\), got \(2, 5, {N}, 3\)"),
+            ((hist, w[:, :2], ref), rf"wrench must be \(B, K modelled nodes, 3\) = \(2, {K}, 3\), got \(2, 2, 3\)"),
+            ((hist, w, ref[:1]), rf"ref must be .* = \(2, {N}, 3\), got \(1, {N}, 3\)"),
+            ((hist.double(), w, ref), r"hist must be torch.float32 \(the model's dtype\), got torch.float64")):
+        with pytest.raises(ValueError, match=msg):
+            model(*args)
+    with pytest.raises(ValueError, match="wrench must hold at least one step"):
+        model.rollout(hist, torch.zeros(2, 0, K, 3), ref)
+    with pytest.raises(ValueError, match=rf"anchors must be .* = \(2, 4, {N}, 3\), got \(2, 2, {N}, 3\)"):
+        model.rollout(hist, torch.zeros(2, 4, K, 3), ref, anchors=torch.zeros(2, 2, N, 3))
+
+
+def test_scales_refuse_too_few_frames_or_no_rod_length():
+    """One second difference (a 3-frame trajectory) gave a NaN a_scale, and a zero length zero length_scale, silently:
+    every step then NaN."""
+    task = get_task("semicircle")
+    model, N, K = tiny_model(task), len(task.tracked), len(task.modeled)
+    model.set_scales([torch.randn(4, N, 3)], torch.randn(3, K, 3), 0.6)
+    assert torch.isfinite(model.a_scale).all()
+    with pytest.raises(ValueError, match=r"at least two second differences .*, got lengths \[3\]"):
+        model.set_scales([torch.randn(3, N, 3)], torch.randn(2, K, 3), 0.6)
+    with pytest.raises(ValueError, match="length .* must be > 0, got 0.0"):
+        model.set_scales([torch.randn(4, N, 3)], torch.randn(3, K, 3), 0.0)
+
+
+def test_evaluation_refuses_a_misaligned_wrench_or_no_frame_to_predict():
+    """A wrench of T frames instead of the T - 1 intervals, or a start at the last frame, failed deep in torch."""
+    task = get_task("semicircle")
+    model = live_head(tiny_model(task))
+    T, N, K = 12, len(task.tracked), len(task.modeled)
+    p, w = torch.zeros(T, N, 3), torch.zeros(T - 1, K, 3)
+    assert one_step(model, p, w, 4).shape == free_running(model, p, w, 4).shape == (T - 5, N, 3)
+    for fn in (one_step, free_running):
+        with pytest.raises(ValueError, match=rf"wrench must hold the T - 1 = {T - 1} intervals"):
+            fn(model, p, torch.zeros(T, K, 3), 4)
+        with pytest.raises(ValueError, match=rf"start must be < T - 1 = {T - 1} .*, got {T - 1}"):
+            fn(model, p, w, T - 1)
 
 
 def test_program_activations_and_head_equal_torch_including_extremes():
@@ -931,6 +998,31 @@ def test_small_training_run_reduces_the_loss(tiny):
     assert after < 0.8 * before
 
 
+def test_a_rollout_loss_longer_than_the_windows_is_refused():
+    """A module horizon beyond the data module's windows trained and validated silently on the shorter windows."""
+    from cmlearn.surrogate.training import SurrogateModule
+    task = get_task("semicircle")
+    model = tiny_model(task)
+    N, K = len(task.tracked), len(task.modeled)
+    batch = (torch.zeros(2, 3, N, 3), torch.zeros(2, 2, N, 3), torch.zeros(2, 2, K, 3), torch.zeros(2, N, 3))
+    module = SurrogateModule(model, horizon=4)
+    assert module.rollout_loss(batch, 2)[1].shape == (2, 2, N, 3)
+    with pytest.raises(ValueError, match="horizon 4 exceeds the batch's 2 future frames"):
+        module.rollout_loss(batch, 4)
+
+
+def test_train_surrogate_refuses_keeping_no_checkpoint(capsys):
+    """--keep-top-k 0 kept no Lightning checkpoint, so no epoch was selected and the last one shipped silently."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("script_train_surrogate", ROOT / "scripts/train_surrogate.py")
+    mod = sys.modules["script_train_surrogate"] = importlib.util.module_from_spec(spec)  # dataclasses look it up
+    spec.loader.exec_module(mod)
+    assert mod.parse(["--keep-top-k", "-1"]).keep_top_k == -1
+    with pytest.raises(SystemExit) as e:
+        mod.parse(["--keep-top-k", "0"])
+    assert e.value.code == 2 and "--keep-top-k must be >= 1 or -1 (every epoch), got 0" in capsys.readouterr().err
+
+
 def test_inverse_square_step_weighting_divides_each_steps_error_by_its_step(tiny):
     from cmlearn.surrogate.training import SurrogateModule
     dm, model, module = erring_training(tiny, 1)
@@ -1160,6 +1252,18 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
     torch.save({"format": "something-else"}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="not a cmlearn-surrogate"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+def test_a_checkpoint_without_a_config_is_a_checkpoint_error(tmp_path):
+    """A sealed checkpoint of this format without a config dict raised a bare KeyError or TypeError."""
+    from cmlearn.io import seal
+    path = save_checkpoint(tmp_path / "m.pt", tiny_model(get_task("semicircle")), {"task": "semicircle"})
+    blob = torch.load(path, weights_only=True)
+    for config in (None, [1, 2]):
+        plain = {k: v for k, v in blob.items() if not k.endswith("_sha256") and k != "config"}
+        torch.save(seal({**plain, **({} if config is None else {"config": config})}), tmp_path / "bad.pt")
+        with pytest.raises(CheckpointError, match="no model configuration"):
+            load_checkpoint(tmp_path / "bad.pt")
 
 
 def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():

@@ -33,6 +33,10 @@ def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, va
     evaluates on the rest; the last ``val_variants`` variants validate; all others train in full.
     ``val_tail`` > 0: the printed scene's last ``val_tail`` of the trajectory before the cut validates
     instead of training (the thesis's one-trajectory protocol, with ``n_variants`` 1)."""
+    if not 0.0 < train_fraction < 1.0:
+        raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
+    if not val_variants >= 0:
+        raise ValueError(f"val_variants must be >= 0, got {val_variants!r}")
     if not 0.0 <= val_tail < train_fraction:
         raise ValueError(f"val_tail must lie in [0, {train_fraction}) of the trajectory, got {val_tail}")
     cut = int(round(train_fraction * (n_frames - 1)))
@@ -56,6 +60,16 @@ class RolloutWindows(Dataset):
             raise ValueError(f"inputs {tuple(inputs.shape)} must match wrench {tuple(wrench.shape)} in (V, T-1)")
         if inputs is not None and time_reversal:
             raise ValueError("time_reversal: a closed-loop wrench model's inputs are not reversible windows")
+        if eta < 0 or horizon < 1:
+            raise ValueError(f"eta must be >= 0 and horizon >= 1, got eta {eta} and horizon {horizon}")
+        V, T = positions.shape[:2]
+        if tuple(wrench.shape[:2]) != (V, T - 1):
+            raise ValueError(f"wrench {tuple(wrench.shape)} must hold the T - 1 = {T - 1} intervals of each of the "
+                             f"V = {V} trajectories of positions {tuple(positions.shape)}")
+        bad = [r for r in ranges if not (0 <= r[0] < V and 0 <= r[1] <= r[2] <= T - 1)]
+        if bad:
+            raise ValueError(f"ranges {bad} lie outside the data: (variant in [0, {V}), first <= last frame in "
+                             f"[0, {T - 1}])")
         self.positions, self.wrench, self.inputs = positions, wrench, inputs
         self.W, self.H = eta + 1, horizon
         self.index = []

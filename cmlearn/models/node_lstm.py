@@ -376,6 +376,11 @@ class NodeLSTMSurrogate(nn.Module):
     def set_scales(self, trajectories, wrench: Tensor, length: float) -> None:
         """Scales from training trajectories (a list of (T_i, n_tracked, 3), each starting at its reference
         shape) and forces (..., K, 3)."""
+        if not length > 0:
+            raise ValueError(f"length (the rod's, metres) must be > 0, got {length!r}")
+        if sum(max(len(p) - 2, 0) for p in trajectories) < 2:
+            raise ValueError(f"trajectories must hold at least two second differences (frames t-1, t, t+1) for the "
+                             f"scales' spread, got lengths {[len(p) for p in trajectories]}")
         tiny = 1e-9 * length
         disp, rel, v, a = [], [], [], []
         for p in trajectories:
@@ -730,11 +735,29 @@ class NodeLSTMSurrogate(nn.Module):
         function in the form that compiles best (frozen features per node, the LSTM as its gate
         equations), slower eagerly. ``rest``: :meth:`rest_accel` of ``ref`` where the model is
         ``rest_anchor``ed (computed here when not given; ignored otherwise)."""
+        self.check_inputs(hist, ref, wrench)
         a = self._accel(hist, wrench, ref, program)
         if self.config.rest_anchor:
             a = a - (self.rest_accel(ref, program) if rest is None else rest)
         pk = hist[:, -1, self.idx_modeled]
         return 2 * pk - hist[:, -2, self.idx_modeled] + a
+
+    def check_inputs(self, hist: Tensor, ref: Tensor, wrench: Tensor | None = None) -> None:
+        """ValueError naming the first of a step's inputs whose shape is not the model's: the history (B, eta+1,
+        n_tracked, 3) (one of another length would step silently wrong: the LSTM runs any length), the reference
+        shape (B, n_tracked, 3) and the modelled nodes' forces (B, K, 3); then the first whose dtype is not the
+        model's. A few us: the eager step checks every call, a compiled program only when it is traced."""
+        c, B = self.config, hist.shape[0] if hist.dim() else "B"
+        dtype = self.a_scale.dtype
+        for name, x, legend, shape in (
+                ("hist", hist, "(B, eta + 1, n_tracked, 3)", (B, c.eta + 1, c.n_tracked, 3)),
+                ("ref", ref, "(B, n_tracked, 3)", (B, c.n_tracked, 3)),
+                ("wrench", wrench, "(B, K modelled nodes, 3)", (B, len(c.modeled), 3))):
+            if x is not None and tuple(x.shape) != shape:
+                raise ValueError(f"{name} must be {legend} = {shape}, got {tuple(x.shape)}")
+        for name, x in (("hist", hist), ("ref", ref), ("wrench", wrench)):
+            if x is not None and x.dtype != dtype:
+                raise ValueError(f"{name} must be {dtype} (the model's dtype), got {x.dtype}")
 
     def _newest_features(self, frames: Tensor, ref: Tensor) -> Tensor:
         """Input Layer I (B, K, F) of the newest of two frames (B, 2, n_tracked, 3), as a window's LSTM sees it at
@@ -826,10 +849,17 @@ class NodeLSTMSurrogate(nn.Module):
         W = self.config.eta + 1
         if hist.shape[1] != W:
             raise ValueError(f"hist must hold eta + 1 = {W} frames, got {hist.shape[1]}")
+        H = wrench.shape[1] if wrench.dim() > 1 else 0
+        if H < 1:
+            raise ValueError(f"wrench must hold at least one step (B, H >= 1, K, 3), got {tuple(wrench.shape)}")
+        if anchors is not None and (anchors.dim() != 4 or anchors.shape[1] < H
+                                    or anchors.shape[::2] != hist.shape[::2] or anchors.shape[-1] != 3):
+            raise ValueError(f"anchors must be (B, H, n_tracked, 3) = ({hist.shape[0]}, {H}, {hist.shape[2]}, 3), "
+                             f"got {tuple(anchors.shape)}")
         frames = list(hist.unbind(1))
         rest = self.rest_accel(ref) if self.config.rest_anchor else None
         out = []
-        for h in range(wrench.shape[1]):
+        for h in range(H):
             nxt = anchors[:, h] if anchors is not None else frames[-1]
             w = wrench[:, h] if wrench_fn is None else wrench_fn(h, frames[-1])
             pk = self(torch.stack(frames[-W:], 1), w, ref, rest=rest)

@@ -64,17 +64,20 @@ def load_checkpoint(path: str | Path, task: str | None = None) -> tuple[NodeLSTM
     cls = _CLASSES.get(blob.get("model_class"))
     if cls is None:
         raise CheckpointError(f"{path}: unknown model class {blob.get('model_class')!r}")
-    cfg = dict(blob["config"])
-    for key in ("modeled", "left", "right", "left2", "right2", "left3", "right3"):
-        if cfg.get(key) is not None:
-            cfg[key] = tuple(cfg[key])
-    if "mirror_axis" in cfg:  # a one-reflection checkpoint from before the symmetry groups (2026-11-25)
-        axis, nodes = cfg.pop("mirror_axis"), cfg.pop("mirror_nodes", None)
-        cfg["reflections"] = () if axis is None else ((axis, nodes),)
-    if cfg.get("rest_shape") is not None:
-        cfg["rest_shape"] = tuple(tuple(float(x) for x in r) for r in cfg["rest_shape"])
-    cfg["reflections"] = tuple((int(a), None if m is None else tuple(m)) for a, m in cfg.get("reflections", ()))
+    if not isinstance(blob.get("config"), dict):
+        raise CheckpointError(f"{path}: no model configuration (a 'config' dict), got "
+                              f"{type(blob.get('config')).__name__}")
     try:
+        cfg = dict(blob["config"])
+        for key in ("modeled", "left", "right", "left2", "right2", "left3", "right3"):
+            if cfg.get(key) is not None:
+                cfg[key] = tuple(cfg[key])
+        if "mirror_axis" in cfg:  # a one-reflection checkpoint from before the symmetry groups (2026-11-25)
+            axis, nodes = cfg.pop("mirror_axis"), cfg.pop("mirror_nodes", None)
+            cfg["reflections"] = () if axis is None else ((axis, nodes),)
+        if cfg.get("rest_shape") is not None:
+            cfg["rest_shape"] = tuple(tuple(float(x) for x in r) for r in cfg["rest_shape"])
+        cfg["reflections"] = tuple((int(a), None if m is None else tuple(m)) for a, m in cfg.get("reflections", ()))
         model = cls[0](cls[1](**cfg))
         model.load_state_dict(blob["state_dict"])
     except (TypeError, ValueError, RuntimeError, KeyError) as e:

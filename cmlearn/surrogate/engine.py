@@ -59,23 +59,6 @@ def check_scene(task: SurrogateTask, scene) -> None:
                          f"task {task.name!r} ({own.n_nodes} nodes, {own.length:.4g} m), which this surrogate models")
 
 
-def check_inputs(model, eta: int, hist: Tensor, ref: Tensor, wrench: Tensor | None = None) -> None:
-    """ValueError naming the first of a step's inputs whose shape is not the model's: the history (B, eta+1,
-    n_tracked, 3), the reference shape (B, n_tracked, 3) and the modelled nodes' forces (B, K, 3); then the first
-    whose dtype is not the model's."""
-    N, K = model.config.n_tracked, model.idx_modeled.numel()
-    B = hist.shape[0] if hist.ndim else "B"
-    for name, x, dims, shape in (("hist", hist, "(B, eta + 1, n_tracked, 3)", (B, eta + 1, N, 3)),
-                                 ("ref", ref, "(B, n_tracked, 3)", (B, N, 3)),
-                                 ("wrench", wrench, "(B, K modelled nodes, 3)", (B, K, 3))):
-        if x is not None and tuple(x.shape) != shape:
-            raise ValueError(f"{name} must be {dims} = {shape}, got {tuple(x.shape)}")
-    want = next(model.parameters()).dtype
-    for name, x in (("hist", hist), ("ref", ref), ("wrench", wrench)):
-        if x is not None and x.dtype != want:
-            raise ValueError(f"{name} must be {want} (the model's dtype), got {x.dtype}")
-
-
 class SurrogateDivergence(RuntimeError):
     """A free-running surrogate rollout went non-finite or left every shape the rod can take."""
 
@@ -125,7 +108,7 @@ class Surrogate:
         try:
             pk = self._step(hist, wrench, ref, self.rest_accel(ref))
         except Exception:  # checked only on failure: a check on every call would cost the real-time step
-            check_inputs(self.model, self.eta, hist, ref, wrench)
+            self.model.check_inputs(hist, ref, wrench)
             raise
         if self.model.config.chord_projection:
             idx = self.model.idx_modeled
@@ -329,7 +312,7 @@ class Stepper:
 
     def __init__(self, engine: Surrogate, hist: Tensor, ref: Tensor, graph: bool = False):
         model, E = engine.model, engine.eta
-        check_inputs(model, E, hist, ref)
+        model.check_inputs(hist, ref)
         if graph and not (hist.is_cuda and ref.is_cuda and engine.device.type == "cuda"):
             raise ValueError(f"graph: a CUDA graph needs the model, hist and ref on a CUDA device, got the model on "
                              f"{engine.device}, hist on {hist.device}, ref on {ref.device}")

@@ -70,9 +70,21 @@ def heldout_case(task, name: str, eta: int, duration: float | None = None,
     return (*from_rest(p, node_wrench(W.float(), task.wrench_nodes, task.modeled), eta), wall)
 
 
+def _check_case(positions: Tensor, wrench: Tensor, start: int) -> None:
+    """ValueError naming the input where ``wrench`` is not the T-1 intervals of ``positions`` (T, ...) or no frame
+    follows ``start``."""
+    T = positions.shape[0]
+    if wrench.shape[0] != T - 1:
+        raise ValueError(f"wrench must hold the T - 1 = {T - 1} intervals of positions {tuple(positions.shape)}, "
+                         f"got {tuple(wrench.shape)}")
+    if not start < T - 1:
+        raise ValueError(f"start must be < T - 1 = {T - 1} (a frame to predict after it), got {start}")
+
+
 @torch.no_grad()
 def one_step(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
     """Teacher-forced predictions of frames start+1 .. T-1: (T-1-start, n_tracked, 3)."""
+    _check_case(positions, wrench, start)
     W = model.config.eta + 1
     t = torch.arange(max(start, W - 1), positions.shape[0] - 1)
     hist = torch.stack([positions[t - W + 1 + j] for j in range(W)], 1)
@@ -93,6 +105,7 @@ def node_recursive(model, positions: Tensor, wrench: Tensor, start: int, slot: i
     if hit.numel() != 1:
         raise ValueError(f"slot {slot} is not a modelled node of this surrogate")
     k, W = int(hit), model.config.eta + 1
+    _check_case(positions, wrench, start)
     if start < W - 1:
         raise ValueError(f"start must be >= eta = {W - 1}")
     own = list(positions[start - W + 1:start + 1, slot].float().unbind(0))
@@ -107,6 +120,7 @@ def node_recursive(model, positions: Tensor, wrench: Tensor, start: int, slot: i
 @torch.no_grad()
 def free_running(model, positions: Tensor, wrench: Tensor, start: int) -> Tensor:
     """Free-running predictions of frames start+1 .. T-1 from the true history ending at ``start``."""
+    _check_case(positions, wrench, start)
     W = model.config.eta + 1
     if start < W - 1:
         raise ValueError(f"start must be >= eta = {W - 1}")

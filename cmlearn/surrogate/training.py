@@ -186,6 +186,9 @@ class SurrogateModule(L.LightningModule):
         each step's wrench from the last frame. ``node_weights`` (one per modelled node) weigh the nodes' squared
         errors in the mean (divided by their mean, so that weights of one give the plain mean)."""
         hist, future, wrench, ref = batch[:4]
+        if horizon > future.shape[1]:
+            raise ValueError(f"horizon {horizon} exceeds the batch's {future.shape[1]} future frames (give the data "
+                             "module a horizon at least the module's)")
         m = self.model
         idx = m.idx_modeled
         fn, wrench_fn = None, wrench_fn or self.wrench_fn
