@@ -15,4 +15,6 @@ __all__ = [
     "StaticSolution", "solve_static", "SolverError", "LGVI", "Boundary", "LGVIState", "Trajectory", "solve_cayley", "Loads", "UniformField",
     "CircularSection", "Magnet", "Material", "Rod", "RodParams", "SquareSection", "StabilityEstimate",
 ]
-__version__ = "0.1.1"  # 0.1.1: the LGVI's time is its start plus whole steps (loads at window edges)
+# 0.1.1: the LGVI's time is its start plus whole steps (loads at window edges); 0.1.2: ellipse_loop refuses a loop its
+# equal elements cannot close (Simulation I's loop variants: 1 of seed 0's 32 was closed with a stretched element)
+__version__ = "0.1.2"

@@ -59,7 +59,10 @@ def _check_matrix(name: str, v, cols: int | None = None) -> Tensor:
 
 
 def _positive(name: str, seq, n: int) -> tuple[float, ...]:
-    out = tuple(float(x) for x in seq)
+    try:
+        out = tuple(float(x) for x in seq)
+    except TypeError:  # a single number, not one per hold/move
+        raise TypeError(f"{name} must be a sequence of {n} durations (s), got {seq!r}") from None
     if len(out) != n or not all(math.isfinite(x) and x >= 0 for x in out):
         raise ValueError(f"{name} must be {n} finite non-negative durations (s), got {seq!r}")
     return out

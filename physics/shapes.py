@@ -151,23 +151,34 @@ def ellipse_loop(n_elements: int, width: float, height: float, element_length: f
     ``element_length / l``) to close with that length instead (to bend one rod into several
     ellipses). Returns ``(p, R, l)``.
 
-    A mesh too coarse for the ellipse's sharpest bends still closes, with elements turning by up to a
-    right angle and more, and past a point on a lopsided loop. With ``min_chord_ratio`` given, such a
-    loop is a ``ValueError`` instead: when its ``n_elements`` chords add up to less than that fraction
-    of the ellipse's perimeter.
+    A mesh too coarse for the ellipse's sharpest bends may still close, with elements turning by up to a
+    right angle and more. With ``min_chord_ratio`` given, such a loop is a ``ValueError`` instead: when
+    its ``n_elements`` chords add up to less than that fraction of the ellipse's perimeter. A mesh whose
+    equal elements cannot close the loop at all is a ``ValueError``.
     """
+    if not all(math.isfinite(x) and x > 0 for x in (width, height)):
+        raise ValueError(f"ellipse_loop: width and height must be finite and > 0 (m), got {width!r}, {height!r}")
+    if element_length is not None and not (math.isfinite(element_length) and element_length > 0):
+        raise ValueError(f"ellipse_loop: element_length must be finite and > 0 (m), got {element_length!r}")
     a, b = width / 2, height / 2
     guess = ellipse_perimeter(width, height) / n_elements
 
     def gap(l):
-        th = _ellipse_march(n_elements - 1, a, b, l)
+        try:
+            th = _ellipse_march(n_elements - 1, a, b, l)
+        except ValueError:  # no node reaches a projected chord this long: the chords are too long
+            return -l
         return _projected_chord(th[-1], 2 * math.pi, a, b) - l  # the last element must close
 
-    lo = 0.97 * guess if gap(0.97 * guess) > 0 else 0.8 * guess  # coarse meshes: chords well short of the arcs
-    l = scipy.optimize.brentq(gap, lo, 1.001 * guess, xtol=1e-15)
-    if min_chord_ratio is not None and l < min_chord_ratio * guess:
+    # coarse meshes: chords well short of the arcs
+    lo = next((r * guess for r in (0.97, 0.8, 0.7, 0.6, 0.5, 0.4) if gap(r * guess) > 0), None)
+    l = None if lo is None else scipy.optimize.brentq(gap, lo, 1.001 * guess, xtol=1e-15)
+    if l is not None and min_chord_ratio is not None and l < min_chord_ratio * guess:
         raise ValueError(f"ellipse_loop: {n_elements} elements close a {width} x {height} ellipse with chords "
                          f"{l / guess:.3f} of its perimeter, below min_chord_ratio={min_chord_ratio}")
+    if l is None or abs(gap(l)) > 1e-9 * guess:  # brentq stopped at a jump of the march, not at a closure
+        raise ValueError(f"ellipse_loop: n_elements={n_elements} equal elements cannot close a {width} x {height} "
+                         "ellipse (too few for its sharpest bends)")
     theta = np.append(_ellipse_march(n_elements - 1, a, b, l), 2 * math.pi)
     scale = 1.0 if element_length is None else element_length / l
     x, y, tx, ty = _ellipse_points(theta, a, b)

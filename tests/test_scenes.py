@@ -446,9 +446,10 @@ def test_paper2_scenes_on_another_mesh():
         # the same rod on longer chords closes a slightly larger ellipse
         assert -float(p[15, 1]) == pytest.approx(height * sc.chosen["ellipse_scale"], rel=1e-6)
         assert 1.0 < sc.chosen["ellipse_scale"] < 1.05
-    for n, why in ((20, "ellipse \\(f\\(a\\)"), (24, "ellipse: its loop closes 13.6 mm off its mirror symmetry")):
-        with pytest.raises(ValueError, match=f"n_elements={n} is too coarse for the 0.2 m x 0.6 m {why}"):
-            ellipse(n)  # the bracket fails, or the loop closes lopsided, its node 13 off the vertex
+    for n in (20, 24):
+        with pytest.raises(ValueError, match=f"n_elements={n} is too coarse for the 0.2 m x 0.6 m ellipse "
+                                             f"\\(ellipse_loop: n_elements={n} equal elements cannot close"):
+            ellipse(n)  # no l closes the loop (at 24 the march's jump once passed for a lopsided closure)
     sc = semicircle_heldout(50)
     assert sc.nodes_of_interest == (25, 7) and sc.loads.force.node == 25 and sc.loads.force.n_nodes == 51
     integ = sc.make_integrator(stability="off")
@@ -460,3 +461,27 @@ def test_paper2_scenes_on_another_mesh():
     for bad in (7, 0, 2.0):
         with pytest.raises(ValueError, match="n_elements must be an even integer >= 2"):
             semicircle(bad)
+
+
+def test_ellipse_loop_coarse_meshes_close_or_raise():
+    from physics.shapes import ellipse_loop
+    for n in (5, 6):  # a regular pentagon / hexagon: projected chords r sin(2 pi / n)
+        p, R, l = ellipse_loop(n, 0.1, 0.1)
+        assert l == pytest.approx(0.05 * math.sin(2 * math.pi / n), rel=1e-12)
+        assert (p[1:] - p[:-1]).norm(dim=-1).tolist() == pytest.approx([0.1 * math.sin(math.pi / n)] * n, rel=1e-12)
+        assert float(p[-1].norm()) == 0.0 and torch.allclose(R[-1], R[0], atol=1e-15)
+    for bad in ((3, 0.1, 0.1), (8, 0.2, 0.05), (24, 0.2, 0.6)):  # the last once "closed" with a 4.5 % longer chord
+        with pytest.raises(ValueError, match="n_elements"):
+            ellipse_loop(*bad)
+    with pytest.raises(ValueError, match="width and height"):
+        ellipse_loop(20, 0.0, 0.1)
+    with pytest.raises(ValueError, match="element_length"):
+        ellipse_loop(20, 0.1, 0.1, element_length=-0.01)
+
+
+def test_min_jerk_durations_must_be_sequences():
+    from physics.coil_currents import MinJerkCurrents
+    with pytest.raises(TypeError, match="moves"):
+        MinJerkCurrents(torch.zeros(2, 3), 0.5, (0.1, 0.1))
+    with pytest.raises(TypeError, match="holds"):
+        MinJerkCurrents(torch.zeros(2, 3), (0.5,), 0.1)
