@@ -69,13 +69,12 @@ def probe(pos: torch.Tensor, force: torch.Tensor, nodes: list[int], anchors: tup
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--variants", type=bounded(int, at_least=1), default=32)
+    ap.add_argument("--variants", type=bounded(int, at_least=2), default=32,
+                    help="the printed scene and at least one to fit on")
     ap.add_argument("--history", type=bounded(int, at_least=1), nargs="+", default=[3, 6])
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=2)
     ap.add_argument("--out", type=writable(), default=str(ROOT / "docs" / "node_density.md"))
     a = ap.parse_args(argv)
-    if a.variants < 2:
-        raise ValueError(f"--variants must be >= 2 (the printed scene and at least one to fit on), got {a.variants}")
     torch.set_num_threads(a.threads)
     base = get_task("semicircle")
     every = replace(base, name="semicircle_all", modeled=tuple(range(1, 100)))

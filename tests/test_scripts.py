@@ -1278,3 +1278,46 @@ def test_report_hybrid_tolerance_eager(tmp_path):
     assert "| 0.0001 |" in out.read_text() and "--eager --duration 0.2" in out.read_text()
     script_fails([str(ROOT / "scripts/report_hybrid_tolerance.py"), "--tols", "0"], tmp_path,
                  "argument --tols: must be > 0, got '0'")
+
+
+def test_every_bench_ends_with_the_shared_json_line():
+    """The benches' last line goes through :func:`cmlearn.eval.timing.json_line` (non-finite floats as strings), not
+    ``json.dumps``, which writes ``NaN`` / ``Infinity``: not JSON."""
+    for path in sorted((ROOT / "scripts" / "bench").glob("*.py")):
+        src = path.read_text()
+        assert "json_line(" in src and "json.dumps(" not in src, path.name
+
+
+def test_bench_dataset_last_line_is_strict_json_when_a_run_is_not_finite(monkeypatch, capsys):
+    """A non-finite figure (here both runs' positions NaN, so their difference) is written as the string "nan"."""
+    mod = load_script("bench/dataset")
+
+    def frames(sim, state, n_frames, every, compiled):
+        p = state.p
+        return torch.full((*p.shape[:-2], n_frames, *p.shape[-2:]), math.nan, dtype=p.dtype), 0.5, 0.0
+    monkeypatch.setattr(mod, "lgvi_frames", frames)
+    mod.main(["--quick", "--task", "ellipse", "--variants", "2"])
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    res = json.loads(line, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+    assert res["max_diff_m"] == "nan" and res["speedup_compiled"] == 1.0
+
+
+@pytest.mark.parametrize("script, argv, msg", [
+    ("bench/dataset", ["--quick", "--task", "ellipse", "--variants", "2", "--duration", "0.001"],
+     "--duration: duration must be a time of at least one surrogate step"),
+    ("bench/quasistatic", ["--quick", "--task", "magnetic_rod_planar"],
+     "--hybrid: no checkpoints/magnetic_rod_planar_quasistatic.pt"),
+    ("bench/quasistatic", ["--quick", "--hybrid", "missing.pt"], "argument --hybrid: no such file"),
+    ("bench/surrogate", ["--quick", "--task", "rod"], "argument --task: invalid choice: 'rod'"),
+    ("bench/surrogate", ["--quick", "--checkpoint", "missing.pt"], "argument --checkpoint: no such file"),
+    ("report_node_density", ["--variants", "1"], "argument --variants: must be >= 2, got '1'"),
+])
+def test_bench_and_report_arguments_that_cannot_run_are_usage_errors(script, argv, msg, monkeypatch, capsys, tmp_path):
+    """Arguments a run cannot use stop it with argparse's usage error naming the flag, before any work (not a
+    traceback from inside it: a division by a zero simulated time, a checkpoint looked up by a flag the script lacks,
+    an unknown task's KeyError)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        load_script(script).main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and msg in err, err[-500:]

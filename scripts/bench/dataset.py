@@ -12,7 +12,6 @@ the float32 data the datasets store are the same bytes. Last line: one JSON obje
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 from dataclasses import replace
 from statistics import median
@@ -22,6 +21,7 @@ import torch
 from cmlearn.args import bounded
 from cmlearn.data import TASKS, data_hash
 from cmlearn.data.generate import lgvi_frames, scene_integrator
+from cmlearn.eval.timing import json_line
 
 
 def main(argv=None):
@@ -39,8 +39,12 @@ def main(argv=None):
     variants = a.variants or (3 if a.quick else {"semicircle": 96, "ellipse": 32, "square_tracking": 64}.get(a.task, 32))
     duration = a.duration or (0.02 if a.quick else 0.2)
     rounds = a.rounds or (1 if a.quick else 2)
-    torch.set_num_threads(a.threads)
     task = TASKS[a.task]
+    try:  # a duration under one frame leaves no simulated time to divide by
+        task.check_duration(duration)
+    except ValueError as e:
+        ap.error(f"--duration: {e}")
+    torch.set_num_threads(a.threads)
     scene = replace(task.base_scene(), duration=duration)
     var = task.variants(scene, variants, 0)  # as simulate_task: one integrator, so the compiled program is built once
     scene, sim, state = scene_integrator(scene, var["p"], var.get("R"),
@@ -67,11 +71,11 @@ def main(argv=None):
     print(f"  compiled LGVI: {comp:.3f} s ({comp / sim_s:.3f} s per simulated second; its compile {compile_s:.1f} s "
           f"apart) -> {eager / comp:.2f}x")
     print(f"  compiled vs eager: largest difference {diff:.2e} m; float32 data {'identical' if same else 'differ'}")
-    print(json.dumps({"task": a.task, "variants": variants, "duration_s": sim_s, "tracked_nodes": n_nodes,
+    print(json_line({"task": a.task, "variants": variants, "duration_s": sim_s, "tracked_nodes": n_nodes,
                       "threads": a.threads, "dtype": "float64", "rounds": rounds, "eager_s": eager, "compiled_s": comp,
                       "eager_runs_s": runs["eager"], "compiled_runs_s": runs["compiled"], "compile_s": compile_s,
                       "speedup_compiled": eager / comp, "max_diff_m": diff, "float32_identical": same,
-                      "torch": torch.__version__, "machine": platform.machine()}))
+                      "torch": torch.__version__, "machine": platform.machine()}, digits=17))
 
 
 if __name__ == "__main__":

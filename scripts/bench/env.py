@@ -10,7 +10,6 @@ i.e. the bound on an env that rendered every step. Prints readable lines and, la
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import tempfile
@@ -20,6 +19,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from cmlearn.args import bounded
+from cmlearn.eval.timing import json_line
 
 
 @dataclass
@@ -88,7 +88,7 @@ def main(argv=None):
     print(f"atlas: {res['atlas_nodes']} views in {atlas_s:.2f} s; one pybullet render {render_ms:.2f} ms "
           f"(rendering every step would cap at {res['render_every_step_bound_steps_per_s']} steps/s)")
     env.close()
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
     return res
 
 

@@ -9,7 +9,6 @@ every point. Prints readable lines and, last, one JSON line.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import asdict, dataclass
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from cmlearn.args import bounded
+from cmlearn.eval.timing import json_line
 from physics.magnetics import CuboidMagnet
 
 EDGE, BR = 0.0508, 1.3
@@ -123,7 +123,7 @@ def main(argv=None):
           f"ours is {res['ratio_vs_magpylib_cuboid']:.2f}x (exact field; our max rel err {vs_exact:.1e})")
     print(f"  ours force+torque   {res['force_points_per_s']:12.4g} points/s")
     print(f"  dipole-grid rel err at 75 mm: {err75:.2e}")
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
     return res
 
 

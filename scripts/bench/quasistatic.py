@@ -1,6 +1,7 @@
 """Benchmark: the quasi-static hybrid's real-time step against the LGVI and the LSTM surrogate, same run.
 
     python scripts/bench/quasistatic.py [--quick] [--task magnetic_rod] [--scene NAME] [--rounds R] [--compile]
+                                        [--hybrid PATH] [--checkpoint PATH]
 
 One hybrid step (:meth:`cmlearn.surrogate.quasistatic.QuasiStaticSurrogate.latency`, the real-time stepper) is the
 static Cosserat solve at the next frame's currents, started from the secant predictor of the last two frames (13
@@ -22,17 +23,16 @@ Batch 1, ``--threads`` threads (default 1), CPU. Last line: one JSON object.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
 from statistics import mean, median
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, readable
 from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
-from cmlearn.eval.timing import lgvi_blocks
+from cmlearn.eval.timing import json_line, lgvi_blocks
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, short_check
 from cmlearn.surrogate.quasistatic_stepper import STAGES
@@ -75,14 +75,24 @@ def main(argv=None):
                     help="rounds of timing (default 5, --quick 2)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--compile", action="store_true", help="also time the hybrid with the solver's compiled path")
+    ap.add_argument("--hybrid", type=readable(), default="",
+                    help="the quasi-static hybrid (default: checkpoints/<task>_quasistatic.pt)")
+    ap.add_argument("--checkpoint", type=readable(), default="",
+                    help="the LSTM surrogate (default: checkpoints/<task>.pt)")
     ap.add_argument("--quick", action="store_true")
     a = ap.parse_args(argv)
     rounds = a.rounds or (2 if a.quick else 5)
+    paths = {}
+    for flag, name, given in (("--hybrid", f"{a.task}_quasistatic", a.hybrid), ("--checkpoint", a.task, a.checkpoint)):
+        try:  # none shipped for the task (magnetic_rod_planar): the flag that gives one
+            paths[flag] = find_checkpoint(name, given or None)
+        except FileNotFoundError:
+            ap.error(f"{flag}: no checkpoints/{name}.pt here or in the source tree; pass {flag} PATH")
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
     scene = task.scene_by_name(a.scene or task.heldout[0])
-    hybrid = QuasiStaticSurrogate.load(find_checkpoint(f"{task.name}_quasistatic"), task=task.name)
-    lstm = Surrogate.load(find_checkpoint(task.name), task=task.name)
+    hybrid = QuasiStaticSurrogate.load(paths["--hybrid"], task=task.name)
+    lstm = Surrogate.load(paths["--checkpoint"], task=task.name)
     n = 10 if a.quick else 50  # hybrid / LSTM steps a round
     lgvi_steps = 24 if a.quick else 248  # LGVI steps a round (its dt is 0.08 ms; a multiple of 4 steps a compiled call)
     latency = task.hook("closed_loop_latency")
@@ -189,7 +199,7 @@ def main(argv=None):
           f"faster per simulated second (rounds {min(ratios):.1f}-{max(ratios):.1f})")
     print(f"  orientation errors over the printed profile's first {check['duration']} s: hybrid "
           f"{check['sum_mean_deg']:.3f} deg (sum of six means), static rod {check['static_sum_mean_deg']:.3f}")
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
     return res
 
 

@@ -31,17 +31,16 @@ the magnetic rod the calls within which the coil field's cached maps refresh run
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import asdict, dataclass, replace
 from statistics import mean, median
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, readable
 from cmlearn.compare import find_checkpoint
-from cmlearn.data import get_task
-from cmlearn.eval.timing import lgvi_blocks
+from cmlearn.data import TASKS, get_task
+from cmlearn.eval.timing import json_line, lgvi_blocks
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.evaluate import short_check
 
@@ -68,9 +67,9 @@ def interleaved(timers: dict, rounds: int) -> dict[str, list[float]]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--task", default="semicircle")
+    ap.add_argument("--task", default="semicircle", choices=sorted(TASKS))
     ap.add_argument("--scene", default="", help="one of the task's scenes (default: the printed one)")
-    ap.add_argument("--checkpoint", default="")
+    ap.add_argument("--checkpoint", type=readable(), default="")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--compile", action="store_true")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
@@ -218,7 +217,7 @@ def main(argv=None):
                   f"{span('speedup_per_simulated_second_rollout_compiled')}; both compiled: "
                   f"{res['speedup_per_simulated_second_rollout_both_compiled']:.0f}x)" if a.compile else ""))
     print(f"  free-running error over {dur} s of {scene.name}: {check['max_err_mm']:.2f} mm")
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
     return res
 
 

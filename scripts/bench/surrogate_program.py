@@ -33,13 +33,13 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import platform
 import time
 
 import torch
 
 from cmlearn.args import bounded
+from cmlearn.eval.timing import json_line
 from cmlearn.models import node_lstm
 from cmlearn.surrogate import Surrogate
 from physics.programs import compile_program
@@ -155,7 +155,7 @@ def main(argv=None):
               f"max |compiled - eager| "
               + " / ".join(f"{v:.1e}" for v in dev.values()) + " m", flush=True)
     model.use_symmetry(())
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
     return res
 
 

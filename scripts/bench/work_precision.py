@@ -37,6 +37,7 @@ from cmlearn.args import bounded, writable
 from cmlearn.data import get_task
 from cmlearn.data.generate import lgvi_frames, scene_integrator
 from cmlearn.eval.metrics import axis_errors
+from cmlearn.eval.timing import json_line
 from cmlearn.io import atomic_write, write_text_atomic
 from cmlearn.surrogate import Surrogate, surrogate_checkpoints
 from cmlearn.surrogate.evaluate import interest_slots, thesis_errors
@@ -180,7 +181,7 @@ def main(argv=None):
         folder = Path(a.out)
         write_text_atomic(folder / f"work_precision_{task.name}.md", report(res))
         plot(res, folder / f"work_precision_{task.name}.png")
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
 
 
 def _label(r: dict) -> str:

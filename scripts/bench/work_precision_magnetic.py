@@ -25,7 +25,6 @@ rounds (:func:`work_precision.timed_rows`); ``speedup`` is the reference's media
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -39,6 +38,7 @@ from cmlearn.compare import find_checkpoint
 from cmlearn.data import get_task
 from cmlearn.data.generate import lgvi_frames
 from cmlearn.data.magnetic import magnet_frames
+from cmlearn.eval.timing import json_line
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import Surrogate
 from cmlearn.surrogate.magnetic import MAGNETS, orientation_errors
@@ -153,7 +153,7 @@ def main(argv=None):
            "surrogate_delta_s": task.delta, "args": vars(a)}
     if a.out:
         write_text_atomic(Path(a.out) / f"work_precision_{task.name}.md", report(res))
-    print(json.dumps(res))
+    print(json_line(res, digits=17))
 
 
 def _label(r: dict) -> str:
