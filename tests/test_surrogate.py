@@ -67,6 +67,8 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
         with pytest.raises(ValueError, match=msg):
             generate_dataset("semicircle", *args, **{"seed": 1, "out": tmp_path / "none.pt", "duration": 0.3, **kw})
     assert not (tmp_path / "none.pt").exists()
+    one = generate_dataset("semicircle", 2, seed=1, out=tmp_path / "one.pt", duration=0.01)  # drew from randint(0, 0)
+    assert one["duration"] == 0.01 and load_dataset(tmp_path / "one.pt")["positions"].shape[:2] == (2, 2)
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a dataset")
     with pytest.raises(ValueError, match="not a readable"):

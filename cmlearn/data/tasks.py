@@ -338,7 +338,7 @@ def _semicircle_variants(scene: Scene, n: int, seed: int, delta: float = 0.01) -
         d = torch.randn(3, generator=g, dtype=torch.float64)
         d = d / d.norm()
         amp = 0.1 * float(torch.rand((), generator=g))
-        i0 = int(torch.randint(0, steps // 2, (), generator=g))
+        i0 = int(torch.randint(0, max(steps // 2, 1), (), generator=g))  # a one-step scene: the pulse from its start
         i1 = int(torch.randint(min(i0 + 10, steps), steps + 1, (), generator=g))
         shape = "cos_pi_t" if float(torch.rand((), generator=g)) < 0.5 else "constant"
         fns.append(NodePulse(rod.n_nodes, node, (amp * d).tolist(), 1.0, i0 * delta, i1 * delta, shape))
