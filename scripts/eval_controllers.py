@@ -57,6 +57,9 @@ class Args:
     no_sweep: bool = False  # memory controllers (iqn with waypoints, memory): no sweep of the training maps either
 
 
+CONTROLLERS = ("iqn", "iqn_greedy", "attractor", "errt", "memory", "random", "teacher")
+
+
 def parse(argv=None) -> Args:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     for f in Args.__dataclass_fields__.values():
@@ -76,6 +79,16 @@ def parse(argv=None) -> Args:
         raise SystemExit(f"--episodes must be >= 1, got {a.episodes}")
     if a.unseen_offset < 0:
         raise SystemExit(f"--unseen-offset must be >= 0, got {a.unseen_offset}")
+    names = [c.strip() for c in a.controllers.split(",") if c.strip()]
+    for name in names:  # checked before the first controller's hours of episodes, not when its turn comes
+        if name not in CONTROLLERS:
+            raise SystemExit(f"--controllers: unknown controller {name!r} ({', '.join(CONTROLLERS)})")
+    if {"iqn", "iqn_greedy"} & set(names):
+        from cmlearn.rl.agent import CheckpointError, load_agent
+        try:
+            load_agent(a.agent)
+        except CheckpointError as e:
+            raise SystemExit(f"--agent: {e}") from None
     return a
 
 
@@ -109,7 +122,7 @@ def make_controller(name: str, env, seed: int, agent: str = "", sweep: bool = Fa
     if name == "teacher":  # privileged (reads the map): a reference, not a robot controller
         from cmlearn.rl.teacher import GeodesicTeacher
         return GeodesicTeacher(env)
-    raise SystemExit(f"--controllers: unknown controller {name!r} (iqn, iqn_greedy, attractor, errt, memory, random, teacher)")
+    raise SystemExit(f"--controllers: unknown controller {name!r} ({', '.join(CONTROLLERS)})")
 
 
 def plot_episode(res, map_, path: Path, title: str):

@@ -52,6 +52,12 @@ def parse(argv=None):
         ns.total_frames, ns.init_random_frames, ns.eval_every, ns.eval_episodes = 1_024, 512, 512, 2
         ns.checkpoint_every, ns.buffer_size, ns.train_maps, ns.max_steps = 512, 4_096, 1, 30
         ns.demo_episodes, ns.pretrain_updates = min(ns.demo_episodes, 4), min(ns.pretrain_updates, 20)
+    try:  # the config's checks (ranges, --network fields) as a usage error, not a traceback
+        config_from_args(ns)
+    except (TypeError, ValueError) as e:
+        ap.error(str(e))
+    if ns.ship.endswith(".json"):  # save_agent writes the metadata to <name>.json: refused after the whole run
+        ap.error(f"argument --ship: must not end in .json (the metadata goes to <name>.json), got {ns.ship!r}")
     return ns
 
 

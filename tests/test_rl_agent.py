@@ -49,6 +49,8 @@ def test_quantile_huber_loss_equals_hand_computation():
     assert quantile_huber_loss(pred, target, taus, 2.0).item() == pytest.approx(hand, abs=1e-7)
     with pytest.raises(ValueError, match="kappa"):
         quantile_huber_loss(pred, target, taus, 0.0)
+    with pytest.raises(ValueError, match=r"target \(B, N'\), got .*target \(1,\)"):  # was paired with every sample
+        quantile_huber_loss(pred, target[:, 0], taus)
 
 
 def test_loss_gradients_reach_every_parameter_and_priorities_are_written():
@@ -492,3 +494,67 @@ def test_target_network_is_copied_after_every_target_update_th_update():
         updater.step()
         synced.append(all(torch.equal(online[k], target[k]) for k in weights))
     assert synced == [False, False, True] * 3
+
+
+def test_loss_rejects_non_finite_kappa_bad_policy_quantiles_and_non_finite_batches():
+    """A NaN or infinite kappa, or a NaN reward or observation, made a silent NaN (or zero) loss that the optimiser
+    wrote into every weight and the replay into every priority; ``num_policy_quantiles=0`` silently meant the
+    network's default."""
+    actor = make_iqn_actor(IQNConfig(**SMALL))
+    for kappa in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="kappa"):
+            IQNLoss(actor, kappa=kappa)
+        with pytest.raises(ValueError, match="kappa"):
+            quantile_huber_loss(torch.zeros(1, 2), torch.ones(1, 2), torch.full((1, 2), 0.5), kappa)
+    for k in (0, -1):
+        with pytest.raises(ValueError, match="num_policy_quantiles"):
+            IQNLoss(actor, num_policy_quantiles=k)
+    loss = IQNLoss(actor, num_quantiles=8, num_target_quantiles=8)
+    td = batch()
+    td["next", "reward"][2] = float("nan")
+    with pytest.raises(ValueError, match="reward"):
+        loss(td)
+    td = batch()
+    td["observation"] = td["observation"].float() / 255
+    td["observation"][1, 0, 0, 0] = float("inf")
+    with pytest.raises(ValueError, match="observation"):
+        loss(td)
+    td = batch()
+    td["priority_weight"] = torch.tensor([1.0, float("nan"), 1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="priority_weight"):
+        loss(td)
+    assert torch.isfinite(loss(batch())["loss"])
+
+
+def test_train_config_rejects_runs_that_would_never_update():
+    """A batch larger than the replay, or more random frames than the whole run, trained nothing and shipped the
+    untrained network without a word."""
+    with pytest.raises(ValueError, match="batch_size=64 must be <= buffer_size=32"):
+        AgentTrainConfig(batch_size=64, buffer_size=32, network=dict(SMALL))
+    with pytest.raises(ValueError, match="init_random_frames=5000 > total_frames=1000"):
+        AgentTrainConfig(total_frames=1_000, network=dict(SMALL))
+    AgentTrainConfig(total_frames=1_000, demo_episodes=2, pretrain_updates=10, network=dict(SMALL))  # pre-training
+
+
+def test_resume_accepts_the_same_network_spelled_differently(tmp_path):
+    """A run started from Python (``widths`` a tuple) resumed from the command line (JSON: a list), or with the
+    defaults written out, is the same architecture; only a different one is refused."""
+    base = dict(num_envs=2, frames_per_batch=10, total_frames=20, init_random_frames=10, n_steps=3, max_steps=20,
+                updates_per_batch=1, buffer_size=64, progress=False, eval_episodes=1, eval_every=10**6,
+                checkpoint_every=10**6, disturbance_probability=0.0, out=str(tmp_path / "run"))
+    first = train_agent(AgentTrainConfig(network=dict(SMALL), **base), maps=[corridor()], log=lambda s: None,
+                        stop_after_frames=10)
+    assert first.frames == 10
+    as_json = {**SMALL, "widths": list(SMALL["widths"]), "noisy_std": 0.5}
+    res = train_agent(AgentTrainConfig(network=as_json, resume=True, **base), maps=[corridor()], log=lambda s: None)
+    assert res.resumed_from == 10 and res.frames == 20
+    with pytest.raises(ValueError, match="differs"):
+        train_agent(AgentTrainConfig(network={**SMALL, "hidden_dim": 8}, resume=True, **base), maps=[corridor()],
+                    log=lambda s: None)
+
+
+def test_save_agent_refuses_a_json_path(tmp_path):
+    """``save_agent("agent.json")`` wrote the checkpoint and then overwrote it with its own metadata copy."""
+    with pytest.raises(ValueError, match=r"path must not end in \.json"):
+        save_agent(tmp_path / "agent.json", IQNNetwork(IQNConfig(**SMALL)), {})
+    assert not (tmp_path / "agent.json").exists()

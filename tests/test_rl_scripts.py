@@ -59,3 +59,30 @@ def test_wilson_interval():
     lo, hi = wilson(50, 100)
     assert abs(lo - 0.4038) < 1e-3 and abs(hi - 0.5962) < 1e-3
     assert abs(wilson(0, 10)[0]) < 1e-12 and abs(wilson(10, 10)[1] - 1.0) < 1e-12
+
+
+def test_train_agent_bad_config_is_a_usage_error(tmp_path):
+    """Values the flags' types accept but the training config refuses end in argparse's usage error, not a
+    traceback."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "CMLEARN_CACHE": str(tmp_path / "cache")}
+    for args, name in ((["--gamma", "1.5"], "gamma"), (["--network", '{"bogus": 1}'], "bogus"),
+                       (["--batch-size", "64", "--buffer-size", "32"], "batch_size"),
+                       (["--quick", "--ship", "agent.json"], "--ship")):
+        out = subprocess.run([sys.executable, str(ROOT / "scripts/train_agent.py"), "--out", "run", *args],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 2 and "usage:" in out.stderr and name in out.stderr, out.stderr[-2000:]
+        assert "Traceback" not in out.stderr
+
+
+def test_eval_controllers_checks_controllers_and_agent_before_running(tmp_path):
+    """An unknown controller name or an unusable ``--agent`` after others in ``--controllers`` stopped the run only
+    when its turn came, after every episode of the controllers before it."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "CMLEARN_CACHE": str(tmp_path / "cache")}
+    for controllers, message in (("attractor,bogus", "unknown controller 'bogus'"),
+                                 ("attractor,iqn", "--agent: missing.pt: no such agent checkpoint")):
+        out = subprocess.run([sys.executable, str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1",
+                              "--train-maps", "1", "--unseen-maps", "1", "--controllers", controllers,
+                              "--agent", "missing.pt", "--out", "ev"],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert out.returncode != 0 and message in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]
+        assert "attractor" not in out.stdout and not (tmp_path / "ev").exists()  # nothing ran

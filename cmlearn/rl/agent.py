@@ -43,6 +43,8 @@ AGENT_FORMAT = "cmlearn-iqn-agent/1"
 def save_agent(path: str | Path, network: IQNNetwork, meta: dict) -> Path:
     """Write the network's weights and plain-JSON ``meta`` atomically (plus ``<name>.json``)."""
     path = Path(path)
+    if path.suffix == ".json":  # the metadata copy would overwrite the checkpoint itself
+        raise ValueError(f"path must not end in .json (the metadata goes to <name>.json), got {str(path)!r}")
     meta = json.loads(json.dumps(meta, default=str))
     state = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
     blob = seal({"format": AGENT_FORMAT, "config": network.config.to_dict(), "state_dict": state, "meta": meta})

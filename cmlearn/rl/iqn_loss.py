@@ -28,6 +28,7 @@ demonstrated action's value stays above the others by ``margin``; without the ke
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -46,11 +47,11 @@ def quantile_huber_loss(pred: Tensor, target: Tensor, taus: Tensor, kappa: float
     """Per-sample quantile Huber loss: ``pred`` (B, N) at fractions ``taus`` (B, N) against ``target`` (B, N').
 
     Returns (B,): the sum over the N predicted quantiles of the mean over the N' target samples."""
-    if kappa <= 0:
-        raise ValueError(f"kappa must be > 0, got {kappa}")
-    if pred.shape != taus.shape or pred.shape[0] != target.shape[0]:
-        raise ValueError(f"pred {tuple(pred.shape)} and taus {tuple(taus.shape)} must match, and target "
-                         f"{tuple(target.shape)} must have the same batch size")
+    if not (math.isfinite(kappa) and kappa > 0):
+        raise ValueError(f"kappa must be finite and > 0, got {kappa}")
+    if pred.shape != taus.shape or pred.ndim != 2 or target.ndim != 2 or pred.shape[0] != target.shape[0]:
+        raise ValueError(f"pred and taus must both be (B, N) and target (B, N'), got pred {tuple(pred.shape)}, "
+                         f"taus {tuple(taus.shape)}, target {tuple(target.shape)}")
     delta = target.unsqueeze(-2) - pred.unsqueeze(-1)                 # (B, N, N'): y_j - Z_i
     ad = delta.abs()
     huber = torch.where(ad <= kappa, 0.5 * delta ** 2, kappa * (ad - 0.5 * kappa))
@@ -98,8 +99,11 @@ class IQNLoss(LossModule):
         for name, v in (("num_quantiles", num_quantiles), ("num_target_quantiles", num_target_quantiles)):
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-        if kappa <= 0:
-            raise ValueError(f"kappa must be > 0, got {kappa}")
+        k = num_policy_quantiles
+        if k is not None and not (isinstance(k, int) and k >= 1):
+            raise ValueError(f"num_policy_quantiles must be None or an int >= 1, got {num_policy_quantiles!r}")
+        if not (math.isfinite(kappa) and kappa > 0):
+            raise ValueError(f"kappa must be finite and > 0, got {kappa}")
         for name, v in (("margin", margin), ("margin_weight", margin_weight)):
             if not (v >= 0 and v < float("inf")):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
@@ -183,6 +187,11 @@ class IQNLoss(LossModule):
         B = obs.shape[0]
         if tensordict.ndim != 1:
             raise ValueError(f"IQNLoss expects a flat batch of transitions, got batch_size {tensordict.batch_size}")
+        k = self.keys
+        for key in (k.observation, ("next", k.observation), ("next", k.reward), k.gamma, k.priority_weight):
+            v = tensordict.get(key, None)  # a NaN here would silently turn the weights and priorities into NaN
+            if v is not None and v.is_floating_point() and not torch.isfinite(v).all():
+                raise ValueError(f"IQNLoss: the batch's {key!r} has non-finite values")
         action = self._action_index(tensordict.get(self.keys.action))
         _, y = self.target_quantiles(tensordict)
         taus = torch.rand(B, self.num_quantiles, device=obs.device)

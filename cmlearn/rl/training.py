@@ -121,6 +121,11 @@ class AgentTrainConfig:
                 raise ValueError(f"{name} must be an int >= 0, got {getattr(self, name)!r}")
         if not (isinstance(self.demo_batch, int) and 1 <= self.demo_batch):
             raise ValueError(f"demo_batch must be an int >= 1, got {self.demo_batch!r}")
+        if self.batch_size > self.buffer_size:  # the replay would never hold a batch: a run without updates
+            raise ValueError(f"batch_size={self.batch_size} must be <= buffer_size={self.buffer_size}")
+        if self.init_random_frames > self.total_frames and not self.pretrain_updates:
+            raise ValueError(f"init_random_frames={self.init_random_frames} > total_frames={self.total_frames}: "
+                             "the run would end before its first update")
         if self.pretrain_updates and not self.demo_episodes:
             raise ValueError("pretrain_updates > 0 needs demonstrations (demo_episodes > 0)")
         for name in ("margin", "margin_weight"):
@@ -276,7 +281,7 @@ def train_agent(cfg: AgentTrainConfig, maps=None, command: str = "", log: Callab
         st = torch.load(state_path, map_location="cpu", weights_only=False)
         if st.get("format") != TRAIN_CHECKPOINT_FORMAT:
             raise ValueError(f"{state_path}: not a {TRAIN_CHECKPOINT_FORMAT} training checkpoint")
-        if st["config"]["network"] != cfg.network:
+        if IQNConfig(**st["config"]["network"]).to_dict() != cfg.net_config.to_dict():  # not its spelling
             raise ValueError(f"resume: the checkpoint's network {st['config']['network']} differs from {cfg.network}")
         loss.load_state_dict(st["loss"])
         optim.load_state_dict(st["optim"])
