@@ -539,3 +539,39 @@ def test_a_batch_mates_failed_warm_step_leaves_the_converged_problems_solution_a
     out = qs._warm_step(Solver(), None, lambda current: None, currents, {}, start, 0.0, 1.0, 4)
     assert out.y[:, 0, 0].tolist() == [1.0, 1.0] and bool(out.converged.all())
     assert out.y[:, 0, 1].tolist() == [1.0, 4.0]  # one warm solve for problem 0; four quarter steps for problem 1
+
+
+def test_the_hybrid_names_a_scene_of_the_other_clamp_a_duration_short_of_a_frame_a_start_past_the_end_and_n_0():
+    """The hanging rod's hybrid in the planar set-up's clamp ran on silently (its rest rotations are the hanging
+    rod's: at zero current the magnets drifted 6 deg in three frames); a duration shorter than a frame, a start at or
+    past the last frame and ``latency(n=0)`` failed with internal messages (or, a negative start, returned the wrong
+    frames)."""
+    from dataclasses import replace
+
+    from cmlearn.data import get_task
+    engine = QuasiStaticSurrogate.load(SHIPPED, task="magnetic_rod")
+    planar = get_task("magnetic_rod_planar").base_scene()
+    for call in (engine.run, engine.stepper):
+        with pytest.raises(ValueError, match="scene 'magnetic_rod_planar': its rod is clamped otherwise"):
+            call(planar)
+    scene = engine.task.scene_by_name("magnetic_rod_heldout")
+    with pytest.raises(ValueError, match=r"duration must be a time of at least one surrogate step \(0\.02 s.*got 0\.01"):
+        engine.run(replace(scene, duration=0.01))
+    with pytest.raises(ValueError, match="n must be an integer >= 1"):
+        engine.latency(scene, n=0)
+    s, d = torch.zeros(10, 13, dtype=torch.float64), torch.zeros(10, 12, dtype=torch.float64)
+    assert rollout_from(engine.model, s, d, 8).shape == (1, 12)
+    for start in (9, 10, -1):
+        with pytest.raises(ValueError, match=rf"start must be a frame 0\.\.8 of the 10 frames, got {start}"):
+            rollout_from(engine.model, s, d, start)
+
+
+def test_a_batch_larger_than_the_training_windows_is_named_instead_of_training_nothing():
+    """The loader drops the last partial batch: a batch_size above the training windows left Lightning with no batch
+    and the script wrote the untrained model."""
+    from cmlearn.surrogate.quasistatic_training import QuasiStaticDataModule
+    s, d = torch.zeros(3, 51, 13), torch.zeros(3, 51, 12)
+    n = len(QuasiStaticDataModule(s, d, 2, 3, 4, 8, batch_size=1).train_set)
+    assert len(QuasiStaticDataModule(s, d, 2, 3, 4, 8, batch_size=n).train_dataloader()) == 1
+    with pytest.raises(ValueError, match=f"batch_size {n + 1} exceeds the {n} training windows of 4 steps"):
+        QuasiStaticDataModule(s, d, 2, 3, 4, 8, batch_size=n + 1)

@@ -420,3 +420,24 @@ def test_planar_setup_moves_the_rod_in_its_plane_and_the_cosserat_model_follows(
     R_cos, _ = cosserat_orientations(scene.loads.field.currents, [0.0, scene.duration], eMNS(), **base_pose(scene))
     err = orientation_errors(R_cos, R).abs()
     assert float(err[..., [0, 2]].max()) < 1e-6 and float(err[..., 1].max()) < 0.5, err  # a wrong clamp: > 20 deg
+
+
+def test_the_closed_loop_names_a_scene_of_the_other_clamp_a_duration_short_of_a_frame_and_no_steps_to_time():
+    """The hanging rod's surrogate in the planar set-up's horizontal clamp ran on silently; a duration shorter than
+    one 20 ms frame (of the closed loop or the LGVI) failed deep in torch.stack; ``n=0`` timed steps in an
+    IndexError."""
+    from cmlearn.surrogate import Surrogate
+    from cmlearn.surrogate.magnetic import closed_loop_latency, run_scene
+    engine = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt", task="magnetic_rod")
+    planar = replace(get_scene("magnetic_rod_planar"), duration=0.1)
+    with pytest.raises(ValueError, match="scene 'magnetic_rod_planar': its rod is clamped otherwise .* 'magnetic_rod'"):
+        engine.run_scene(planar)
+    with pytest.raises(ValueError, match="clamped otherwise"):
+        run_scene(engine, planar, exact_field=True)
+    scene = get_scene("magnetic_rod_heldout")
+    with pytest.raises(ValueError, match=r"duration must be a time of at least one surrogate step \(0\.02 s.*got 0\.005"):
+        engine.run_scene(scene, duration=0.005)
+    with pytest.raises(ValueError, match="n must be an integer >= 1 .* got n=0"):
+        closed_loop_latency(engine, scene, n=0)
+    with pytest.raises(ValueError, match=r"duration must be a time of at least one surrogate step \(0\.02 s.*got 0\.005"):
+        rollout(TASK, scene, duration=0.005)  # the LGVI's frames: failed in torch.stack too

@@ -163,6 +163,8 @@ def rollout(task, scene, currents=None, duration: float | None = None, compile: 
     cur = field.currents if currents is None else currents
     scene = replace(scene, loads=replace(scene.loads, field=CoilField(field.emns, cur, field.tol)),
                     duration=duration or scene.duration)
+    task.check_duration(scene.duration)
+    n_frames = int(round(scene.duration / task.delta)) + 1
     sim = scene.make_integrator()
     cfg = scene.initial_configuration()
     I0 = torch.as_tensor(cur(torch.tensor(0.0, dtype=torch.float64)))
@@ -170,7 +172,6 @@ def rollout(task, scene, currents=None, duration: float | None = None, compile: 
     if I0.dim() == 2:
         p, R = p.expand(I0.shape[0], -1, -1), R.expand(I0.shape[0], -1, -1, -1)
     every = task.record_every(scene)
-    n_frames = int(round(scene.duration / task.delta)) + 1
     P, Rs, wall, _ = lgvi_frames(sim, sim.initial_state(p=p, R=R), n_frames, every, compile, record_R=True)
     pts = tracked_points(task, scene.rod, P, Rs)
     I = currents_series(cur, n_frames - 1, task.delta).movedim(0, -2)  # (..., T-1, C)

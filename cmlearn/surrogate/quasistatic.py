@@ -32,7 +32,7 @@ from physics.lie import so3_exp
 
 from .checkpoint import read_blob
 from .engine import check_scene
-from .magnetic import base_pose, orientation_errors, orientation_stats
+from .magnetic import base_pose, check_clamp, orientation_errors, orientation_stats
 
 __all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "scene_track", "profile_tracks",
            "rollout_from", "deviation_errors", "profile_scores", "static_tracks", "fresh_scores", "short_check",
@@ -87,6 +87,8 @@ def rollout_from(model: QuasiStaticCorrection, s: Tensor, d: Tensor, start: int)
     repeats frame 0 (from rest). A model that reads the fold clock gets it (:func:`with_fold_clock`) where ``s``
     (..., T, 13) has none, counted from its first frame."""
     c = model.config
+    if not 0 <= start < s.shape[-2] - 1:
+        raise ValueError(f"start must be a frame 0..{s.shape[-2] - 2} of the {s.shape[-2]} frames, got {start!r}")
     if c.fold_clock and s.shape[-1] == 13:
         s = with_fold_clock(s, c.fold_clock)
     lead = max(c.eta, c.increments - 1)
@@ -180,6 +182,7 @@ class QuasiStaticSurrogate:
         from frame ``start`` of the LGVI's ``positions`` (its true deviations before) otherwise. ``track``: the
         scene's :class:`~cmlearn.data.quasistatic.StaticTrack` at its T frames where already solved."""
         self._check_scene(scene)
+        self.task.check_duration(scene.duration)
         T = int(round(scene.duration / self.task.delta)) + 1
         if positions is None:
             if start:
@@ -197,8 +200,10 @@ class QuasiStaticSurrogate:
 
     def _check_scene(self, scene) -> None:
         """:func:`~cmlearn.surrogate.engine.check_scene`, and a ValueError unless the scene's rod hangs in a coil
-        field, whose currents the hybrid solves for."""
+        field, whose currents the hybrid solves for, from the task's clamp
+        (:func:`~cmlearn.surrogate.magnetic.check_clamp`)."""
         check_scene(self.task, scene)
+        check_clamp(self.task, scene)
         if not hasattr(getattr(scene.loads, "field", None), "currents"):
             raise ValueError(f"scene {scene.name!r} has no coil field (loads.field with currents), which the "
                              "quasi-static hybrid solves in")
@@ -219,9 +224,11 @@ class QuasiStaticSurrogate:
         ``n`` frames (``None``: all of them): the medians of the static solve at the next frame's currents and of
         the correction (the first step, which compiles where ``compile``, is not timed), the slowest step, the
         steps slower than the frame and the mean LM iterations of a solve."""
+        n = int(round(scene.duration / self.task.delta)) if n is None else n
+        if not (isinstance(n, int) and n >= 1):
+            raise ValueError(f"n must be an integer >= 1 (steps timed) or None, got {n!r}")
         st = self.stepper(scene, compile=compile, predictor=predictor, **kw)
         currents = scene.loads.field.currents
-        n = int(round(scene.duration / self.task.delta)) if n is None else n
         t_solve, t_net, its = [], [], []
         for k in range(1, n + 2):
             I = currents(torch.tensor(k * self.task.delta, dtype=torch.float64))

@@ -86,6 +86,9 @@ class QuasiStaticDataModule(SeededDataModule):
         ranges = training_ranges(s)
         self.train_set = DeviationWindows(s, d, ranges["train"], eta, increments, horizon)
         self.val_set = DeviationWindows(s, d, ranges["val"], eta, increments, val_horizon, val_stride)
+        if batch_size > len(self.train_set):  # the loader drops the last partial batch: no training at all
+            raise ValueError(f"batch_size {batch_size} exceeds the {len(self.train_set)} training windows of "
+                             f"{horizon} steps")
         self.batch_size = batch_size
 
     def train_dataloader(self):
