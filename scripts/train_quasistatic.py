@@ -59,7 +59,8 @@ class Args:
     fresh: int = opt(0, "also score the model from rest on this many random profiles of --fresh-seed, never trained "
                         "on (0: none)", at_least=0)
     fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)", at_least=0)
-    out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt)", path="file")
+    out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt; with --quick "
+                       "runs/quick/<task>_quasistatic.pt, so a smoke test never replaces a shipped model)", path="file")
     resume: str = opt("", "a Lightning checkpoint to resume", path="input")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
                              "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may "
@@ -152,7 +153,7 @@ def main(argv=None):
         meta["check"] = short_check(engine, data_dir=a.data_dir)
         if a.fresh:
             meta["metrics"]["fresh"] = fresh_scores(model, task, a.fresh + 1, a.fresh_seed, a.data_dir)
-    out = Path(a.out or f"checkpoints/{task.name}_quasistatic.pt")
+    out = Path(a.out or f"{'runs/quick' if a.quick else 'checkpoints'}/{task.name}_quasistatic.pt")
     save_quasistatic(out, model, meta)
     print(f"wrote {out}")
     for case, res in meta.get("metrics", {}).items():

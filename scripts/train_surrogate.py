@@ -119,7 +119,8 @@ class Args:
                         path="folder")
     compile_data: bool = opt(False, "generate a missing dataset with the LGVI's compiled rollout (its program compiled "
                                     "ahead of time; equal to the eager LGVI to round-off; not for the magnetic rod)")
-    out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt)", path="file")
+    out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt; with --quick runs/quick/<task>.pt, "
+                       "so a smoke test never replaces a shipped model)", path="file")
     log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints", path="folder")
     resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues",
                       path="input")
@@ -362,7 +363,7 @@ def main(argv=None):
             "torch": str(torch.__version__), "epochs_run": trainer.current_epoch, "world_size": trainer.world_size,
             "train_wall_s": t_train, "data_wall_s": t_data, "init_from": init_from}
     meta["check"] = recorded_check(model, meta, a.duration, a.data_dir)
-    out = Path(a.out or f"checkpoints/{task.name}.pt")
+    out = Path(a.out or f"{'runs/quick' if a.quick else 'checkpoints'}/{task.name}.pt")
     save_checkpoint(out, model, meta)
     print(f"wrote {out}")
     print("\n".join(metric_lines(metrics)))

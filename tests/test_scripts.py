@@ -255,9 +255,11 @@ def test_train_quasistatic_quick_writes_a_loadable_hybrid(tmp_path, capsys):
     script_fails([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--init-from", "q.pt", "--hidden", "16",
                   "--out", "q3.pt"], tmp_path, "--init-from q.pt: its hidden differ")
     # with the fold clock: the checkpoint records it and its network reads it (a 14th static column)
-    run_script([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--margin", "--fold-clock", "20", "--out",
-                "q4.pt", "--log-dir", "logs"], tmp_path)
-    clocked = QuasiStaticSurrogate.load(tmp_path / "q4.pt", task="magnetic_rod").model
+    # (and without --out: a smoke test writes under runs/quick/, not over the shipped checkpoints/ file it did)
+    res = run_script([str(ROOT / "scripts/train_quasistatic.py"), "--quick", "--margin", "--fold-clock", "20",
+                      "--log-dir", "logs"], tmp_path)
+    assert res["checkpoint"] == "runs/quick/magnetic_rod_quasistatic.pt" and not (tmp_path / "checkpoints").exists()
+    clocked = QuasiStaticSurrogate.load(tmp_path / res["checkpoint"], task="magnetic_rod").model
     assert clocked.config.fold_clock == 20.0 and clocked.dense[0].in_features == 12 * 3 + 12 + 4 + 1
     for extra, msg in ((["--eta", "1"], "argument --eta: must be >= 2, got '1'"),
                        (["--fresh", "2", "--fresh-seed", "0"], "--fresh-seed must differ from --seed 0"),
@@ -365,11 +367,12 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
     # --init-from starts from those weights, scales included: at lr 0 the run leaves them as they are
     run_script([str(ROOT / "scripts/train_surrogate.py"), "--quick", "--task", "semicircle", "--threads", "1",
                 "--rest-anchor", "--mirror", "zx", "--head-hidden", "24", "--init-from", "ck.pt", "--lr", "0",
-                "--epochs", "1", "--val-fresh", "2", "--val-stride", "2", "--out", "ft.pt", "--log-dir", "logs_ft"],
-               tmp_path)
-    src, ft = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("ck.pt", "ft.pt"))
+                "--epochs", "1", "--val-fresh", "2", "--val-stride", "2", "--log-dir", "logs_ft"],
+               tmp_path)  # no --out: a smoke test writes under runs/quick/, not over checkpoints/semicircle.pt
+    assert not (tmp_path / "checkpoints").exists()
+    src, ft = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("ck.pt", "runs/quick/semicircle.pt"))
     assert src.keys() == ft.keys() and all(torch.equal(src[k], ft[k]) for k in src)
-    ft_meta = json.loads((tmp_path / "ft.json").read_text())
+    ft_meta = json.loads((tmp_path / "runs/quick/semicircle.json").read_text())
     for case in rep["cases"]:  # the same errors
         assert {m: ft_meta["metrics"][case][m] for m in ("one_step", "free_running")} == \
             {m: meta["metrics"][case][m] for m in ("one_step", "free_running")}
