@@ -113,6 +113,8 @@ class DistributedDampingFilter:
         estimate history ``(..., T', n, 3)``."""
         if measurements.shape[-3] < 3:
             raise ValueError("DistributedDampingFilter.run needs at least 3 measurements")
+        if not (isinstance(record_every, int) and record_every >= 1):
+            raise ValueError(f"DistributedDampingFilter.run: record_every must be an integer >= 1, got {record_every!r}")
         fs = self.init(measurements[..., 0, :, :], measurements[..., 1, :, :], R1, pi1, t=self.model.dt)
         hist = []
         for j in range(2, measurements.shape[-3]):

@@ -77,6 +77,8 @@ def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elast
     if any(k != 0 for k in getattr(rod, "intrinsic_curvature", (0.0, 0.0, 0.0))):
         raise ValueError("frequencies: the modes are those about the straight rod, and a rod with "
                          f"intrinsic_curvature {tuple(rod.intrinsic_curvature)} is not at rest straight")
+    if isinstance(n_modes, bool) or not (isinstance(n_modes, int) and n_modes >= 1):
+        raise ValueError(f"frequencies: n_modes must be an integer >= 1, got {n_modes!r}")
     A = _reduced(rod, bc, energy_fn)
     n_rigid = 6 if bc == "free-free" else 0
     k = min(n_modes + n_rigid, A.shape[0])

@@ -193,8 +193,10 @@ def circular_arc(node_s: Sequence[float], turning_angle: float) -> tuple[Tensor,
     (about -z) by ``turning_angle`` rad over its length, close to ``p = R (1 - cos phi, sin phi, 0)``
     (:func:`strain_free_positions` lengthens each chord by about ``phi_i^2 / 6``, 1.6e-4 for 100
     elements over a half turn, which makes the clamped arc an exact discrete equilibrium)."""
+    if not math.isfinite(turning_angle):
+        raise ValueError(f"circular_arc: turning_angle must be finite (rad), got {turning_angle!r}")
     s = np.asarray(node_s, dtype=np.float64)
-    phi = s / (s[-1] / turning_angle)
+    phi = np.zeros_like(s) if turning_angle == 0 else s / (s[-1] / turning_angle)  # 0: the straight rod
     t = np.stack((np.sin(phi), np.cos(phi), np.zeros_like(phi)), -1)
     R = planar_frames(t)
     return strain_free_positions(R, np.diff(s)), R

@@ -15,7 +15,10 @@ def test_bench_cosserat_quick(tmp_path):
 
 def test_report_cosserat_timing_quick(tmp_path):
     res = run_script([str(ROOT / "scripts/report_cosserat_timing.py"), "--quick", "--no-compile", "--reps", "1",
-                      "--out", "timing.md"], tmp_path)
+                      "--threads", "2", "--out", "timing.md"], tmp_path)
+    # the command that made it, whole (it left out --reps and --threads), and the threads it ran on
+    assert "`scripts/report_cosserat_timing.py --quick --no-compile --reps 1 --threads 2`" in \
+        (tmp_path / "timing.md").read_text() and "2 thread(s)" in (tmp_path / "timing.md").read_text()
     assert (tmp_path / "timing.md").exists() and (tmp_path / "timing.png").stat().st_size > 10_000
     assert not list(tmp_path.glob("*.tmp*"))  # atomic writes leave no temporaries
     assert "8.33-50 Hz" in (tmp_path / "timing.md").read_text()

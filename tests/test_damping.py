@@ -76,6 +76,8 @@ def test_filter_input_validation(reference):
         filt.init(traj.p[0], traj.p[1][:-1], traj.R[1])
     with pytest.raises(ValueError, match="at least 3"):
         filt.run(traj.p[:2], traj.R[1])
+    with pytest.raises(ValueError, match="record_every must be an integer >= 1, got 0"):  # ZeroDivisionError
+        filt.run(traj.p[:4], traj.R[1], record_every=0)
 
 
 def test_zero_regularisation_gives_no_nan(reference):

@@ -95,3 +95,22 @@ def test_sparse_free_free_frequencies_match_dense(monkeypatch):
     sparse = modal.frequencies(rod, "free-free", 3)
     assert torch.allclose(sparse, dense, rtol=1e-6)
     assert torch.allclose(modal.frequencies(rod, "clamped-free", 3), rod.natural_frequencies(n_modes=3), rtol=1e-6)
+    for bad in (0, 2.0, True):  # 0 failed in scipy's eigh, 2.0 in a slice
+        with pytest.raises(ValueError, match=f"n_modes must be an integer >= 1, got {bad}"):
+            modal.frequencies(rod, "clamped-free", bad)
+
+
+def test_circular_arc_of_no_turn_is_straight_and_a_nan_turn_is_refused():
+    """turning_angle 0 divided by zero (a RuntimeWarning, then the straight rod); NaN gave NaN positions."""
+    import warnings
+
+    import numpy as np
+
+    from physics.shapes import circular_arc
+    s = np.linspace(0.0, 0.5, 6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p, R = circular_arc(s, 0.0)
+    assert torch.allclose(p[:, 1], torch.as_tensor(s, dtype=p.dtype)) and float(p[:, [0, 2]].abs().max()) == 0
+    with pytest.raises(ValueError, match="turning_angle must be finite"):
+        circular_arc(s, float("nan"))
