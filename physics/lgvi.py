@@ -364,7 +364,7 @@ class LGVI:
                              f"{steps_per_call!r} and {newton_iters!r}")
         if n_steps % steps_per_call:
             raise ValueError(f"compiled_rollout: n_steps={n_steps} must be a multiple of steps_per_call={steps_per_call}")
-        self._check_start(state, "compiled_rollout")
+        self.check_state(state, "compiled_rollout", finite=False)
         field = self.loads.field if self._has_magnets and hasattr(self.loads.field, "drift") else None
         t = self._tensor_time(state.t)
         p, v, R, pi = state.p, state.v, state.R, state.pi
@@ -475,18 +475,17 @@ class LGVI:
             if x.dtype != self.dtype or x.device != self.params.mass.device:
                 raise ValueError(f"{where}: state.{name} is {x.dtype} on {x.device}, but this LGVI runs {self.dtype} "
                                  f"on {self.params.mass.device} (make the state with this LGVI's initial_state)")
-            bad = ~torch.isfinite(x).flatten(-len(tail) + 1).all(-1) if finite else None
-            if finite and bool(bad.any()):
-                raise ValueError(f"{where}: state.{name} is not finite at node {int(bad.nonzero()[0, -1])}")
+            if finite:
+                bad = ~torch.isfinite(x).flatten(-len(tail) + 1).all(-1)
+                if bool(bad.any()):
+                    raise ValueError(f"{where}: state.{name} is not finite at node {int(bad.nonzero()[0, -1])}")
 
-    def _check_start(self, state: LGVIState, where: str) -> None:
-        """:meth:`check_state`, and the shape of each load given as a function of time at the state's time. A
-        compiled rollout's call checks only the shapes and types (a few us; the values cost it about 10 % of a call
-        of 40 steps: a non-finite start fails its first block, replayed eagerly to name the step and node)."""
-        compiled = where == "compiled_rollout"
-        self.check_state(state, where, finite=not compiled)
-        if compiled:
-            return
+    def _check_start(self, state: LGVIState) -> None:
+        """:meth:`simulate`'s :meth:`check_state`, and the shape of each load given as a function of time at the
+        state's time. (A compiled rollout's call checks only the state's shapes and types, a few us; the values
+        would cost it about a tenth of a call of 40 steps: a non-finite start fails its first block, replayed
+        eagerly to name the step and node.)"""
+        self.check_state(state)
         for name in ("force", "torque"):
             load = getattr(self.loads, name)
             value = load(self._tensor_time(state.t)) if callable(load) else None
@@ -523,7 +522,7 @@ class LGVI:
             raise ValueError(f"simulate: n_steps must be >= 0, got {n_steps!r}")
         if record_every < 1:
             raise ValueError(f"simulate: record_every must be >= 1, got {record_every!r}")
-        self._check_start(state, "simulate")
+        self._check_start(state)
         ts, ps, Rs, Es = [state.t], [state.p], [state.R] if record_R else None, []
         if record_energy:
             Es.append(self.energy(state))

@@ -48,15 +48,23 @@ def median_latency(call, n: int, warmup: int) -> float:
 
 
 def check_scene(task: SurrogateTask, scene) -> None:
-    """TypeError unless ``scene`` is a scene, ValueError unless its rod is ``task``'s (nodes and length): a
-    surrogate knows its nodes by their index along that rod."""
+    """TypeError unless ``scene`` is a scene, ValueError unless its rod is ``task``'s (nodes and length: a surrogate
+    knows its nodes by their index along that rod) and clamped as in the task's scenes (``chosen`` base position and
+    rotation: the magnetic rod's hanging and planar set-ups share one rod)."""
     if not (hasattr(scene, "rod") and hasattr(scene, "initial_configuration")):
         raise TypeError(f"scene: expected a physics Scene (e.g. get_task({task.name!r}).scene_by_name(NAME)), "
                         f"got {type(scene).__name__}")
-    own, rod = task.base_scene().rod, scene.rod
+    base, rod = task.base_scene(), scene.rod
+    own = base.rod
     if rod.n_nodes != own.n_nodes or abs(rod.length - own.length) > 1e-9 * own.length:
         raise ValueError(f"scene {scene.name!r}: its rod ({rod.n_nodes} nodes, {rod.length:.4g} m) is not the rod of "
                          f"task {task.name!r} ({own.n_nodes} nodes, {own.length:.4g} m), which this surrogate models")
+    for key in ("base_position", "base_rotation"):
+        a, b = scene.chosen.get(key), base.chosen.get(key)
+        if (a is None) != (b is None) or (a is not None and not torch.allclose(
+                torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64), atol=1e-12)):
+            raise ValueError(f"scene {scene.name!r}: its rod is clamped otherwise ({key} {a}) than in task "
+                             f"{task.name!r} ({b}), whose clamp this surrogate learned: use that task's scenes")
 
 
 class SurrogateDivergence(RuntimeError):

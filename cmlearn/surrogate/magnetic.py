@@ -44,7 +44,7 @@ from .evaluate import from_rest, interest_slots, one_step
 __all__ = ["MAGNETS", "simulate", "rollout", "orientation_errors", "orientation_stats", "closed_loop", "closed_loop_inputs",
            "closed_loop_wrench", "nudged_free_running", "cosserat_orientations", "base_pose", "evaluate", "run_scene", "short_check", "compare_scene",
            "FIELD_TABLE_RADIUS", "field_table", "closed_loop_step", "closed_loop_program", "check_workspace",
-           "closed_loop_latency", "reference_profiles", "profile_start", "check_clamp"]
+           "closed_loop_latency", "reference_profiles", "profile_start"]
 
 MAGNETS = ("proximal", "distal")  # the rod's magnets in order along it
 # m: the ball over which the real-time closed loop tabulates the coil field: the six-coil eMNS's 50 mm workspace
@@ -174,19 +174,6 @@ def base_pose(scene) -> dict:
     from physics.lie import matrix_to_quat
     R = torch.tensor(scene.chosen["base_rotation"], dtype=torch.float64)
     return {"base_position": scene.chosen["base_position"], "base_quaternion": matrix_to_quat(R)}
-
-
-def check_clamp(task, scene) -> None:
-    """ValueError unless ``scene``'s rod is clamped as ``task``'s (:func:`base_pose`): a surrogate of the hanging rod
-    knows nothing of the planar set-up's horizontal clamp, and the reverse."""
-    own = task.base_scene().chosen
-    for key in ("base_position", "base_rotation"):
-        a, b = scene.chosen.get(key), own.get(key)
-        same = (a is None) == (b is None) and (a is None or torch.allclose(
-            torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64), atol=1e-12))
-        if not same:
-            raise ValueError(f"scene {scene.name!r}: its rod is clamped otherwise ({key} {a}) than in task "
-                             f"{task.name!r} ({b}), whose clamp this surrogate learned: use that task's scenes")
 
 
 def cosserat_orientations(currents, times, field_model, n_nodes: int = 13, **pose):
@@ -329,8 +316,9 @@ def run_scene(engine, scene, duration: float | None = None, exact_field: bool = 
     :func:`closed_loop_step`; compiled after ``engine.compile()``), or with ``exact_field`` in the coils' exact
     field, eager, as the evaluation runs it (:func:`closed_loop`): tracked points (T, n_tracked, 3) and the wall
     time, the currents' evaluation included."""
+    from .engine import check_scene
     task = engine.task
-    check_clamp(task, scene)
+    check_scene(task, scene)
     task.check_duration(duration or scene.duration)
     n = int(round((duration or scene.duration) / task.delta))
     if exact_field:
@@ -357,7 +345,8 @@ def closed_loop_program(engine, scene) -> tuple:
     """A controller's closed loop on ``scene``: ``step`` (:func:`closed_loop_step` in the tabulated field, eager,
     or compiled after ``engine.compile()``) and its arguments ``[hist, currents, ref(, rest)]`` at rest in the
     scene's initial shape (currents zero, (1, C) A); call ``hist, frame = step(hist, currents, *args[2:])``."""
-    check_clamp(engine.task, scene)
+    from .engine import check_scene
+    check_scene(engine.task, scene)
     field = field_table(scene.loads.field.emns)
     ref = initial_points(engine.task, scene)[None]
     rest = engine.rest_accel(ref)

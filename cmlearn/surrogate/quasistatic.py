@@ -32,7 +32,7 @@ from physics.lie import so3_exp
 
 from .checkpoint import read_blob
 from .engine import check_scene
-from .magnetic import base_pose, check_clamp, orientation_errors, orientation_stats
+from .magnetic import base_pose, orientation_errors, orientation_stats
 
 __all__ = ["FORMAT", "save_quasistatic", "QuasiStaticSurrogate", "rest_rotations", "scene_track", "profile_tracks",
            "rollout_from", "deviation_errors", "profile_scores", "static_tracks", "fresh_scores", "short_check",
@@ -199,11 +199,9 @@ class QuasiStaticSurrogate:
         return cp, Rp, P[start + 1:], R[start + 1:]
 
     def _check_scene(self, scene) -> None:
-        """:func:`~cmlearn.surrogate.engine.check_scene`, and a ValueError unless the scene's rod hangs in a coil
-        field, whose currents the hybrid solves for, from the task's clamp
-        (:func:`~cmlearn.surrogate.magnetic.check_clamp`)."""
+        """:func:`~cmlearn.surrogate.engine.check_scene` (the task's rod and clamp), and a ValueError unless the
+        scene's rod hangs in a coil field, whose currents the hybrid solves for."""
         check_scene(self.task, scene)
-        check_clamp(self.task, scene)
         if not hasattr(getattr(scene.loads, "field", None), "currents"):
             raise ValueError(f"scene {scene.name!r} has no coil field (loads.field with currents), which the "
                              "quasi-static hybrid solves in")
