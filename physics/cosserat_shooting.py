@@ -224,6 +224,33 @@ class CosseratSolver:
                              f"(make them with this rod's params())")
         return prm
 
+    def _check_loads(self, loads) -> StaticLoads:
+        """``loads=`` unless it does not fit the solver (:meth:`make_loads` checks its keywords the same way): not
+        :class:`~physics.cosserat.StaticLoads`, another dtype or device, a trailing shape other than the rod's (its
+        ``load_points`` then the tip for the point loads), a non-finite value or a base quaternion that is not unit
+        (each used to give a wrong shape, or a SolverError after a minute of load stepping, without an error)."""
+        if not isinstance(loads, StaticLoads):
+            raise TypeError(f"loads must be StaticLoads (make_loads), got {type(loads).__name__}")
+        P = len(self.rod.load_points) + 1
+        trailing = {"point_force": (P, 3), "point_torque": (P, 3), "field_scale": (), "base_quaternion": (4,)}
+        for nm, v in zip(loads._fields, loads):
+            want = trailing.get(nm, (3,))
+            if not isinstance(v, Tensor) or v.dtype != self.dtype:
+                raise TypeError(f"loads.{nm} must be a {self.dtype} tensor (the solver's dtype; make_loads makes one), "
+                                f"got {v.dtype if isinstance(v, Tensor) else type(v).__name__}")
+            if v.device != self._s.device:
+                raise ValueError(f"loads.{nm} is on {v.device}, the solver on {self._s.device}")
+            if v.dim() < len(want) or tuple(v.shape[v.dim() - len(want):]) != want:
+                raise ValueError(f"loads.{nm} must have shape (..., {', '.join(map(str, want))}) (the rod's "
+                                 f"{P - 1} load_points, then the tip, for the point loads), got {tuple(v.shape)}")
+            if not bool(torch.isfinite(v).all()):
+                raise ValueError(f"loads.{nm} must be finite")
+        qn = loads.base_quaternion.norm(dim=-1)
+        if bool(((qn - 1).abs() > 1e-6).any()):
+            raise ValueError(f"loads.base_quaternion must be a unit quaternion (w, x, y, z) (|q| = 1 within 1e-6), got "
+                             f"|q| = {float(qn.flatten()[((qn - 1).abs()).flatten().argmax()]):.6g}")
+        return loads
+
     # ------------------------------------------------------------------ inputs
     def make_loads(self, *, gravity=None, point_forces=None, point_torques=None, tip_force=None, tip_moment=None,
                    line_force=None, line_torque=None, base_position=None, base_quaternion=None) -> StaticLoads:
@@ -357,7 +384,7 @@ class CosseratSolver:
         if loads is not None and load_kw:
             raise ValueError(f"give the loads either as loads= or as keywords, not both (got loads= and "
                              f"{', '.join(sorted(load_kw))}=)")
-        loads = self._loads(load_kw) if loads is None else loads
+        loads = self._loads(load_kw) if loads is None else self._check_loads(loads)
         if field is not None and not callable(field) and not hasattr(field, "wrench"):
             raise TypeError("field must be callable as field(t, positions) -> B | (B, dB) or have "
                             "wrench(t, positions, moments)")
@@ -404,6 +431,7 @@ class CosseratSolver:
                 xc, its = self._chord(x0, chord.detach().to(**kw), prm_d, loads_d, field, t, its, live, flat,
                                       min(CHORD_MAX, max_iter))
             x, r, J, Y, rn, its = continuation(load_steps, live, its, xc)
+            self._check_start(x0, prm_d, loads_d, max_load_steps, field, t, rn)
             steps = load_steps
             while steps < max_load_steps and not bool((rn <= self.tol).all()):
                 steps = min(4 * steps, max_load_steps)
@@ -424,6 +452,21 @@ class CosseratSolver:
         if grad:
             Y, x = self._implicit(x, J, prm, loads, field, t)
         return StaticSolution(self._s, Y, x * sc, converged, its, rn, J)
+
+    def _check_start(self, x0, prm, loads, n_steps, field, t, rn):
+        """A :class:`SolverError` at once for a problem that found no finite residual and whose tip residual is not
+        finite even at its start point under the smallest load step (``loads`` over ``n_steps``): a NaN or infinite field, load or
+        parameter. Load stepping cannot mend that and used to spend about a minute finding out."""
+        lost = ~torch.isfinite(rn)
+        if not bool(lost.any()):
+            return
+        r0 = shoot(x0, prm, self.rod.grid, loads.scaled(1 / n_steps), self.scales, field, t, record=False, fd_step=self.fd_step).r
+        bad = (lost & ~torch.isfinite(r0).all(-1)).flatten().nonzero().flatten()
+        if bad.numel():
+            raise SolverError(f"Cosserat shooting: the tip residual of {bad.numel()} of {lost.numel()} problem(s) is "
+                              f"not finite at the start point (the unloaded or warm-start base wrench under "
+                              f"1/{n_steps} of the loads): the field hook, a load or a parameter "
+                              f"gives NaN or infinity", step=0, node=int(bad[0]))
 
     def _batch_shape(self, loads: StaticLoads, prm: CosseratParams, x0: Tensor, field, t: float, flat=None):
         """The problems' batch shape: that of the loads, the parameters, the start ``x0`` (..., 6) and the field's

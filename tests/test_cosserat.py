@@ -510,6 +510,50 @@ def test_params_and_loads_that_do_not_fit_the_solver_are_refused():
     assert (own.p - sc.solve(s2).p).abs().max() < 1e-12  # a scene's solve takes loads= (its pose not added)
 
 
+
+def test_loads_given_whole_are_checked_like_the_keywords():
+    """``loads=StaticLoads`` skipped every check make_loads does: a non-unit base quaternion moved the tip of the
+    magnetic rod from z = -0.05 m to +0.066 m, a point-force tensor of the wrong count was accepted, float32 loads
+    ran in a float64 solver, and a NaN load spent 38 s on load stepping before "did not converge"."""
+    sc = paper2_magnetic_rod()
+    solver = CosseratSolver(sc.rod)
+    good = solver.make_loads(gravity=sc.gravity, base_quaternion=sc.base_quaternion)
+    nan = torch.tensor([float("nan"), 0.0, 0.0], dtype=D)
+    for bad, err, msg in (
+            ((1.0,) * 8, TypeError, "loads must be StaticLoads"),
+            (good._replace(gravity=good.gravity.float()), TypeError, "loads.gravity must be a torch.float64 tensor"),
+            (good._replace(line_force=nan), ValueError, "loads.line_force must be finite"),
+            (good._replace(point_force=torch.zeros(5, 3, dtype=D)), ValueError,
+             r"loads.point_force must have shape \(\.\.\., 3, 3\) \(the rod's 2 load_points, then the tip"),
+            (good._replace(base_quaternion=2 * good.base_quaternion), ValueError,
+             "loads.base_quaternion must be a unit quaternion .* got |q| = 2")):
+        with pytest.raises(err, match=msg):
+            sc.solve(solver, loads=bad)
+    ok = sc.solve(solver, loads=good._replace(gravity=good.gravity.expand(2, 3)))  # a batch of loads still solves
+    assert ok.p.shape[0] == 2 and bool(ok.converged.all())
+
+
+def test_a_field_that_gives_nan_is_named_at_once():
+    """A field hook returning NaN (or a NaN parameter) ran Levenberg-Marquardt through every load-stepping retry
+    (1611 iterations, 38 s for the magnetic rod) into "did not converge"; no load step can mend it."""
+    import time
+    sc = paper2_magnetic_rod()
+    solver = CosseratSolver(sc.rod)
+
+    def nan_field(t, positions):
+        return torch.full_like(positions, float("nan"))
+
+    t0 = time.perf_counter()
+    with pytest.raises(SolverError, match=r"tip residual of 1 of 1 problem\(s\) is not finite at the start point "
+                                          r"\(the unloaded or warm-start base wrench under 1/64 of the loads\)"):
+        sc.solve(solver, field=nan_field)
+    assert time.perf_counter() - t0 < 10.0
+    prm = sc.rod.params(D)
+    with pytest.raises(SolverError, match="not finite at the start point"):
+        sc.solve(solver, params=prm._replace(ks_inv=prm.ks_inv * float("nan")))
+    fine = sc.solve(solver, field=lambda t, p: torch.zeros_like(p))  # a finite field still solves
+    assert bool(fine.converged.all())
+
 def test_bad_field_and_magnet_input_raise_clear_errors():
     """A NaN in a LinearField or in the magnets' moments ran Levenberg-Marquardt and its load-stepping retries
     for up to a minute into "did not converge"; a LinearField of a wrong shape, a batch of UniformFields without
