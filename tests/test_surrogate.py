@@ -209,7 +209,8 @@ def test_validation_tail_of_the_printed_scene(tiny):
 
 def test_windows_and_splits_refuse_ranges_outside_the_data():
     """A range past the data's last frame or variant (as ``train_fraction`` > 1 gave) made short or empty windows
-    silently; a horizon of 0 windows without a future."""
+    silently; a horizon of 0 windows without a future; val_variants of all the variants or more validated on fewer
+    than asked (variant 0 cannot validate) and left nothing but the printed scene's cut to train on."""
     P, wr = torch.zeros(2, 20, 4, 3), torch.zeros(2, 19, 3, 3)
     assert len(RolloutWindows(P, wr, [(1, 0, 19)], eta=2, horizon=4)) == 14
     for ranges, kw, msg in (([(0, 0, 40)], {}, r"ranges \[\(0, 0, 40\)\] lie outside the data"),
@@ -221,7 +222,8 @@ def test_windows_and_splits_refuse_ranges_outside_the_data():
             RolloutWindows(P, args.pop("wrench"), ranges, **args)
     for kw, msg in (({"train_fraction": 1.5}, r"train_fraction must lie in \(0, 1\), got 1.5"),
                     ({"train_fraction": 0.0}, r"train_fraction must lie in \(0, 1\), got 0.0"),
-                    ({"val_variants": -1}, "val_variants must be >= 0, got -1")):
+                    ({"val_variants": -1}, "val_variants must be >= 0, got -1"),
+                    ({"val_variants": 3}, r"val_variants must be at most n_variants - 1 = 2 \(variant 0 is the printed")):
         with pytest.raises(ValueError, match=msg):
             split_ranges(3, 31, **kw)
 
@@ -1272,6 +1274,28 @@ def test_a_checkpoint_without_a_config_is_a_checkpoint_error(tmp_path):
         with pytest.raises(CheckpointError, match="no model configuration"):
             load_checkpoint(tmp_path / "bad.pt")
 
+
+def test_a_checkpoint_must_name_its_task(tmp_path):
+    """save_checkpoint and save_quasistatic wrote metadata without a "task" (or with an unknown one), and loading
+    the file then failed with a bare KeyError 'task'; a sealed file of that kind is a CheckpointError."""
+    from cmlearn.io import seal
+    from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
+    from cmlearn.surrogate.quasistatic import QuasiStaticSurrogate, save_quasistatic
+    model = tiny_model(get_task("semicircle"))
+    for meta, shown in (({"metrics": {}}, "None"), ({"task": "semicircel"}, "'semicircel'")):
+        with pytest.raises(ValueError, match=f"meta must be a dict whose 'task' is one of .* got task {shown}"):
+            save_checkpoint(tmp_path / "m.pt", model, meta)
+        with pytest.raises(ValueError, match="meta must be a dict whose 'task' is one of"):
+            save_quasistatic(tmp_path / "q.pt", QuasiStaticCorrection(QuasiStaticConfig()), meta)
+    assert not list(tmp_path.iterdir())  # nothing written
+    for path, load in ((save_checkpoint(tmp_path / "m.pt", model, {"task": "semicircle"}), Surrogate.load),
+                       (save_quasistatic(tmp_path / "q.pt", QuasiStaticCorrection(QuasiStaticConfig()),
+                                         {"task": "magnetic_rod"}), QuasiStaticSurrogate.load)):
+        blob = torch.load(path, weights_only=True)
+        plain = {k: v for k, v in blob.items() if not k.endswith("_sha256")}
+        torch.save(seal({**plain, "meta": {"metrics": {}}}), tmp_path / "bad.pt")
+        with pytest.raises(CheckpointError, match="bad.pt: its metadata names no surrogate task"):
+            load(tmp_path / "bad.pt")
 
 def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
     engine = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt")

@@ -30,13 +30,17 @@ def node_wrench(wrench: Tensor, wrench_nodes, modeled) -> Tensor:
 def split_ranges(n_variants: int, n_frames: int, train_fraction: float = 0.6, val_variants: int = 1,
                  val_tail: float = 0.0):
     """Frame ranges per split: variant 0 (the printed scene) trains on its first ``train_fraction`` and
-    evaluates on the rest; the last ``val_variants`` variants validate; all others train in full.
+    evaluates on the rest; the last ``val_variants`` (at most ``n_variants`` - 1) variants validate; all others train
+    in full (with ``n_variants`` 1, nothing validates and the validation range is the test range).
     ``val_tail`` > 0: the printed scene's last ``val_tail`` of the trajectory before the cut validates
     instead of training (the thesis's one-trajectory protocol, with ``n_variants`` 1)."""
     if not 0.0 < train_fraction < 1.0:
         raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
     if not val_variants >= 0:
         raise ValueError(f"val_variants must be >= 0, got {val_variants!r}")
+    if n_variants > 1 and val_variants > n_variants - 1:
+        raise ValueError(f"val_variants must be at most n_variants - 1 = {n_variants - 1} (variant 0 is the printed "
+                         f"scene, which trains and tests), got {val_variants}")
     if not 0.0 <= val_tail < train_fraction:
         raise ValueError(f"val_tail must lie in [0, {train_fraction}) of the trajectory, got {val_tail}")
     cut = int(round(train_fraction * (n_frames - 1)))

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from cmlearn.data.tasks import TASKS
 from cmlearn.io import CheckpointError, check_digests, save_torch_atomic, seal, write_text_atomic
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
@@ -27,9 +28,18 @@ FORMAT = "cmlearn-surrogate/1"
 _CLASSES = {"NodeLSTMSurrogate": (NodeLSTMSurrogate, NodeLSTMConfig)}
 
 
+def plain_meta(meta: dict) -> dict:
+    """``meta`` as plain JSON types (loadable with ``weights_only=True``); a ValueError where its ``"task"`` names
+    no surrogate task, which every loader needs (the checkpoint was written and then could not be loaded)."""
+    if not isinstance(meta, dict) or meta.get("task") not in TASKS:
+        raise ValueError(f"meta must be a dict whose 'task' is one of {sorted(TASKS)}, got task "
+                         f"{meta.get('task') if isinstance(meta, dict) else type(meta).__name__!r}")
+    return json.loads(json.dumps(meta, default=str))
+
+
 def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> Path:
     path = Path(path)
-    meta = json.loads(json.dumps(meta, default=str))  # plain types only: loadable with weights_only=True
+    meta = plain_meta(meta)
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     blob = seal({"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
                  "state_dict": state, "meta": meta})
@@ -53,6 +63,9 @@ def read_blob(path: str | Path, fmt: str, task: str | None = None) -> tuple[dict
         raise CheckpointError(f"{path}: not a {fmt} checkpoint")
     check_digests(path, blob)
     meta = blob.get("meta", {})
+    if not isinstance(meta, dict) or meta.get("task") not in TASKS:
+        raise CheckpointError(f"{path}: its metadata names no surrogate task (got "
+                              f"{meta.get('task') if isinstance(meta, dict) else meta!r})")
     if task is not None and meta.get("task") != task:
         raise CheckpointError(f"{path}: checkpoint is for task {meta.get('task')!r}, not {task!r}")
     return blob, meta

@@ -30,7 +30,7 @@ from cmlearn.io import CheckpointError, save_torch_atomic, seal, write_text_atom
 from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from physics.lie import so3_exp
 
-from .checkpoint import read_blob
+from .checkpoint import plain_meta, read_blob
 from .engine import check_scene
 from .magnetic import base_pose, orientation_errors, orientation_stats
 
@@ -44,7 +44,7 @@ FORMAT = "cmlearn-quasistatic/1"
 def save_quasistatic(path: str | Path, model: QuasiStaticCorrection, meta: dict) -> Path:
     """Write the checkpoint and its JSON metadata (``<name>.json``) atomically."""
     path = Path(path)
-    meta = json.loads(json.dumps({**meta, "format": FORMAT}, default=str))
+    meta = plain_meta({**meta, "format": FORMAT})
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     blob = seal({"format": FORMAT, "config": model.config.to_dict(), "meta": meta, "state_dict": state})
     save_torch_atomic(path, blob)
