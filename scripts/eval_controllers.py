@@ -79,6 +79,8 @@ def parse(argv=None) -> Args:
         raise SystemExit(f"--episodes must be >= 1, got {a.episodes}")
     if a.unseen_offset < 0:
         raise SystemExit(f"--unseen-offset must be >= 0, got {a.unseen_offset}")
+    if a.plots < 0:  # a negative count sliced the episodes shown from the end ([:-1]: all but one)
+        raise SystemExit(f"--plots must be >= 0, got {a.plots}")
     names = [c.strip() for c in a.controllers.split(",") if c.strip()]
     for name in names:  # checked before the first controller's hours of episodes, not when its turn comes
         if name not in CONTROLLERS:

@@ -31,7 +31,7 @@ import time
 import torch
 from torch.utils.data import default_collate
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import RolloutWindows
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
@@ -43,7 +43,7 @@ from cmlearn.surrogate.evaluate import (evaluate_scenes, fresh_errors, fresh_sco
 def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("checkpoint", help="the surrogate checkpoint (.pt) to refine")
+    ap.add_argument("checkpoint", type=readable(), help="the surrogate checkpoint (.pt) to refine")
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=96,
                     help="variants of the checkpoint's training data")
     ap.add_argument("--seed", type=bounded(int, at_least=0), default=0, help="the data's seed")

@@ -12,13 +12,13 @@ import argparse
 import json
 from pathlib import Path
 
-from cmlearn.args import writable
+from cmlearn.args import readable, writable
 
 
 def main(argv=None):
     root = Path(__file__).resolve().parents[1]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--agent", default=str(root / "checkpoints" / "iqn_agent.json"))
+    ap.add_argument("--agent", type=readable(), default=str(root / "checkpoints" / "iqn_agent.json"))
     ap.add_argument("--out", type=writable(), default=str(root / "docs" / "agent_training"))
     a = ap.parse_args(argv)
     import matplotlib

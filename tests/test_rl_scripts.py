@@ -76,13 +76,15 @@ def test_train_agent_bad_config_is_a_usage_error(tmp_path):
 
 def test_eval_controllers_checks_controllers_and_agent_before_running(tmp_path):
     """An unknown controller name or an unusable ``--agent`` after others in ``--controllers`` stopped the run only
-    when its turn came, after every episode of the controllers before it."""
+    when its turn came, after every episode of the controllers before it; ``--plots -1`` plotted all episodes but
+    one."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "CMLEARN_CACHE": str(tmp_path / "cache")}
-    for controllers, message in (("attractor,bogus", "unknown controller 'bogus'"),
-                                 ("attractor,iqn", "--agent: missing.pt: no such agent checkpoint")):
+    for controllers, extra, message in (("attractor,bogus", [], "unknown controller 'bogus'"),
+                                        ("attractor,iqn", [], "--agent: missing.pt: no such agent checkpoint"),
+                                        ("attractor", ["--plots", "-1"], "--plots must be >= 0, got -1")):
         out = subprocess.run([sys.executable, str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1",
                               "--train-maps", "1", "--unseen-maps", "1", "--controllers", controllers,
-                              "--agent", "missing.pt", "--out", "ev"],
+                              "--agent", "missing.pt", "--out", "ev", *extra],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert out.returncode != 0 and message in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]
         assert "attractor" not in out.stdout and not (tmp_path / "ev").exists()  # nothing ran

@@ -35,10 +35,11 @@ import argparse
 import functools
 import platform
 import time
+from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded
+from cmlearn.args import bounded, readable
 from cmlearn.eval.timing import json_line
 from cmlearn.models import node_lstm
 from cmlearn.surrogate import Surrogate
@@ -96,7 +97,8 @@ def interleaved_us(calls: dict, rounds: int, n: int) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", default="checkpoints/semicircle.pt")
+    ap.add_argument("--checkpoint", type=readable(),
+                    default=str(Path(__file__).resolve().parents[2] / "checkpoints" / "semicircle.pt"))
     ap.add_argument("--scene", default="semicircle_heldout")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--rounds", type=bounded(int, at_least=0), default=0, help="default 9 (3 with --quick)")
