@@ -24,7 +24,7 @@ import sys
 
 import torch
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.surrogate import load_checkpoint, save_checkpoint
 from cmlearn.surrogate.checkpoint import provenance
@@ -34,8 +34,8 @@ from cmlearn.surrogate.evaluate import evaluate_scenes, fresh_errors, fresh_scor
 def parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("start", help="checkpoint A (.pt): alpha 0")
-    ap.add_argument("end", help="checkpoint B (.pt): alpha 1")
+    ap.add_argument("start", type=readable(), help="checkpoint A (.pt): alpha 0")
+    ap.add_argument("end", type=readable(), help="checkpoint B (.pt): alpha 1")
     ap.add_argument("--alpha", type=bounded(float), required=True, help="the blend's place between A (0) and B (1)")
     ap.add_argument("--variants", type=bounded(int, at_least=0), default=0,
                     help="variants of the evaluation data (0: A's own)")

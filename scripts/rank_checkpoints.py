@@ -21,7 +21,7 @@ import json
 
 import torch
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -36,7 +36,7 @@ def variant_info(info) -> object:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt) of one task")
+    ap.add_argument("checkpoints", type=readable(), nargs="+", help="surrogate checkpoints (.pt) of one task")
     ap.add_argument("--seed", type=bounded(int, at_least=0), default=2,
                     help="the fresh variants' seed (not one a checkpoint was trained "
                     "or selected on: train_surrogate's defaults are 0 and, with --val-fresh, 1)")

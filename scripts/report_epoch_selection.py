@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import dataset_path, get_task, load_dataset
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
@@ -68,7 +68,8 @@ def errors(model, positions, wrench, start, slot, length) -> list[float] | None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", help="the checkpoint train_surrogate.py wrote (its .json names the log folder)")
+    ap.add_argument("run", type=readable(),
+                    help="the checkpoint train_surrogate.py wrote (its .json names the log folder)")
     ap.add_argument("--data-dir", type=writable(folder=True), default="data")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1)
     ap.add_argument("--out", type=writable(), default="", help="also write the table to this markdown file")

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.io import write_text_atomic
 from cmlearn.surrogate import load_checkpoint
@@ -82,7 +82,7 @@ def fmt(s: dict) -> str:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("checkpoints", nargs="*", default=[str(ROOT / "checkpoints" / "ellipse.pt")])
+    ap.add_argument("checkpoints", type=readable(), nargs="*", default=[str(ROOT / "checkpoints" / "ellipse.pt")])
     ap.add_argument("--variants", type=bounded(int, at_least=1), default=32,
                     help="training loops (the dataset of seed 0 with this many)")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,

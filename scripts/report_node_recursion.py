@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import torch
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import get_task, scene_rollout
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.eval.metrics import axis_errors
@@ -68,7 +68,7 @@ def report(model, task, duration: float) -> list[dict]:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt)")
+    ap.add_argument("checkpoints", type=readable(), nargs="+", help="surrogate checkpoints (.pt)")
     ap.add_argument("--duration", type=bounded(float, at_least=0), default=0.0,
                     help="simulated seconds of every scene (0: their own)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")

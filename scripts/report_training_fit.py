@@ -22,7 +22,7 @@ import json
 import torch
 from torch import Tensor
 
-from cmlearn.args import bounded, writable
+from cmlearn.args import bounded, readable, writable
 from cmlearn.data import cached_dataset, get_task
 from cmlearn.data.windows import node_wrench, split_ranges
 from cmlearn.io import write_text_atomic
@@ -59,7 +59,7 @@ def summary(err, swing) -> dict:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("checkpoints", nargs="+", help="surrogate checkpoints (.pt) of position tasks")
+    ap.add_argument("checkpoints", type=readable(), nargs="+", help="surrogate checkpoints (.pt) of position tasks")
     ap.add_argument("--starts", type=bounded(int, at_least=0), nargs="+", default=[40, 120],
                     help="window starts (frames)")
     ap.add_argument("--steps", type=bounded(int, at_least=1), default=80,

@@ -55,7 +55,7 @@ SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (
 #: the options through which a script writes its results (files or folders)
 OUTPUTS = ("out", "data_dir", "log_dir", "ship", "report")
 #: the options naming a file a run starts from or measures
-INPUTS = ("resume", "init_from", "init", "checkpoint", "agent")
+INPUTS = ("resume", "init_from", "init", "checkpoint", "checkpoints", "agent", "run", "start", "end")
 
 
 @pytest.mark.parametrize("name", SCRIPTS)
@@ -100,11 +100,20 @@ def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, m
             assert e.value.code == 2 and f"argument {flag}: cannot write" in err and "is a file" in err, err[-300:]
             assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
         # train_agent's --resume is a switch (its run folder's state); eval_controllers loads --agent as it parses
-        # when an iqn controller is asked for (test_rl_scripts), and runs the others without one
-        if act.dest in INPUTS and act.nargs != 0 and (name, act.dest) != ("eval_controllers", "agent"):
+        # when an iqn controller is asked for (test_rl_scripts), and runs the others without one; report_surrogates'
+        # --checkpoints is the folder it lists; the reports whose --checkpoints option also finds a path under the
+        # repository (its defaults) check them as they load (naming the flag)
+        if act.dest in INPUTS and act.nargs != 0 and (name, act.dest) not in (
+                ("eval_controllers", "agent"), ("report_surrogates", "checkpoints"),
+                ("report_one_step_bias", "checkpoints"), ("report_free_running_spread", "checkpoints"),
+                ("report_load_amplitude", "checkpoints"), ("report_step_baselines", "checkpoints")):
             assert getattr(act.type, "__qualname__", "").startswith("readable."), f"{name} {flag}: unchecked file"
+            missing = str(tmp_path / "missing.ckpt")
+            argv = [flag, missing] if act.option_strings else \
+                [missing if p is act else str(tmp_path / "a_file") for p in ap._actions if not p.option_strings]
+            (tmp_path / "a_file").write_text("")
             with pytest.raises(SystemExit) as e:
-                ap.parse_args([flag, str(tmp_path / "missing.ckpt")])
+                ap.parse_args(argv)
             err = capsys.readouterr().err
             assert e.value.code == 2 and f"argument {flag}: no such file" in err, err[-300:]
     assert checked or name in ("report_agent", "report_lgvi_convergence", "report_rollout_sensitivity",
