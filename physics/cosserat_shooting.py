@@ -431,7 +431,8 @@ class CosseratSolver:
                 xc, its = self._chord(x0, chord.detach().to(**kw), prm_d, loads_d, field, t, its, live, flat,
                                       min(CHORD_MAX, max_iter))
             x, r, J, Y, rn, its = continuation(load_steps, live, its, xc)
-            self._check_start(x0, prm_d, loads_d, max_load_steps, field, t, rn)
+            if raise_on_failure:  # (otherwise such problems end unconverged, with the others solved)
+                self._check_start(x0, prm_d, loads_d, max_load_steps, field, t, rn)
             steps = load_steps
             while steps < max_load_steps and not bool((rn <= self.tol).all()):
                 steps = min(4 * steps, max_load_steps)
@@ -455,8 +456,8 @@ class CosseratSolver:
 
     def _check_start(self, x0, prm, loads, n_steps, field, t, rn):
         """A :class:`SolverError` at once for a problem that found no finite residual and whose tip residual is not
-        finite even at its start point under the smallest load step (``loads`` over ``n_steps``): a NaN or infinite field, load or
-        parameter. Load stepping cannot mend that and used to spend about a minute finding out."""
+        finite even at its start point under the smallest load step (``loads`` over ``n_steps``): a NaN or infinite
+        field, load or parameter. Load stepping cannot mend that and used to spend about a minute finding out."""
         lost = ~torch.isfinite(rn)
         if not bool(lost.any()):
             return

@@ -548,6 +548,8 @@ def test_a_field_that_gives_nan_is_named_at_once():
                                           r"\(the unloaded or warm-start base wrench under 1/64 of the loads\)"):
         sc.solve(solver, field=nan_field)
     assert time.perf_counter() - t0 < 10.0
+    flags = sc.solve(solver, field=nan_field, raise_on_failure=False, max_load_steps=1)  # flags asked for: no error
+    assert not bool(flags.converged.any())
     prm = sc.rod.params(D)
     with pytest.raises(SolverError, match="not finite at the start point"):
         sc.solve(solver, params=prm._replace(ks_inv=prm.ks_inv * float("nan")))
