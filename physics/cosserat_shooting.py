@@ -129,6 +129,16 @@ def _vec(name: str, v, dtype, device, trailing: tuple[int, ...]) -> Tensor:
     return v
 
 
+def _unit_norm(name: str, q: Tensor) -> Tensor:
+    """``|q|`` of a base quaternion ``q`` (..., 4), or a ValueError naming ``name`` where it is off 1 by over 1e-6."""
+    qn = q.norm(dim=-1)
+    off = (qn - 1).abs()
+    if bool((off > 1e-6).any()):
+        raise ValueError(f"{name} must be a unit quaternion (w, x, y, z) (|q| = 1 within 1e-6), "
+                         f"got |q| = {float(qn.flatten()[off.flatten().argmax()]):.6g}")
+    return qn
+
+
 def _needs_grad(*objs, _depth: int = 0) -> bool:
     """Whether any tensor in ``objs`` requires a gradient, looked for in tuples, lists, dicts and objects' attributes
     down to a few levels (a field model's sum keeps its parts' tensors in a list of models)."""
@@ -245,10 +255,7 @@ class CosseratSolver:
                                  f"{P - 1} load_points, then the tip, for the point loads), got {tuple(v.shape)}")
             if not bool(torch.isfinite(v).all()):
                 raise ValueError(f"loads.{nm} must be finite")
-        qn = loads.base_quaternion.norm(dim=-1)
-        if bool(((qn - 1).abs() > 1e-6).any()):
-            raise ValueError(f"loads.base_quaternion must be a unit quaternion (w, x, y, z) (|q| = 1 within 1e-6), got "
-                             f"|q| = {float(qn.flatten()[((qn - 1).abs()).flatten().argmax()]):.6g}")
+        _unit_norm("loads.base_quaternion", loads.base_quaternion)
         return loads
 
     # ------------------------------------------------------------------ inputs
@@ -276,10 +283,7 @@ class CosseratSolver:
         pt = torch.cat(_cat_tip(pt, tm), -2)
         q0 = torch.tensor([1.0, 0, 0, 0], **kw) if base_quaternion is None else \
             _vec("base_quaternion", base_quaternion, self.dtype, self.device, (4,))
-        qn = q0.norm(dim=-1)
-        if bool(((qn - 1).abs() > 1e-6).any()):
-            raise ValueError(f"base_quaternion must be a unit quaternion (w, x, y, z) (|q| = 1 within 1e-6), "
-                             f"got |q| = {float(qn.flatten()[((qn - 1).abs()).flatten().argmax()]):.6g}")
+        qn = _unit_norm("base_quaternion", q0)
         return StaticLoads(v3("gravity", gravity), v3("line_force", line_force), v3("line_torque", line_torque),
                            pf, pt, torch.ones((), **kw), v3("base_position", base_position), q0 / qn.unsqueeze(-1))
 
@@ -461,7 +465,8 @@ class CosseratSolver:
         lost = ~torch.isfinite(rn)
         if not bool(lost.any()):
             return
-        r0 = shoot(x0, prm, self.rod.grid, loads.scaled(1 / n_steps), self.scales, field, t, record=False, fd_step=self.fd_step).r
+        r0 = shoot(x0, prm, self.rod.grid, loads.scaled(1 / n_steps), self.scales, field, t, record=False,
+                   fd_step=self.fd_step).r
         bad = (lost & ~torch.isfinite(r0).all(-1)).flatten().nonzero().flatten()
         if bad.numel():
             raise SolverError(f"Cosserat shooting: the tip residual of {bad.numel()} of {lost.numel()} problem(s) is "
