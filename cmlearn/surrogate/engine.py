@@ -65,6 +65,19 @@ def check_scene(task: SurrogateTask, scene) -> None:
                 torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64), atol=1e-12)):
             raise ValueError(f"scene {scene.name!r}: its rod is clamped otherwise ({key} {a}) than in task "
                              f"{task.name!r} ({b}), whose clamp this surrogate learned: use that task's scenes")
+    if (scene.base_motion is None) != (base.base_motion is None):
+        raise ValueError(f"scene {scene.name!r}: its base {'moves' if base.base_motion is None else 'is fixed'}, "
+                         f"unlike in task {task.name!r}, whose clamp this surrogate learned")
+    if not torch.allclose(torch.tensor(scene.gravity, dtype=torch.float64),
+                          torch.tensor(base.gravity, dtype=torch.float64), rtol=0, atol=1e-12):
+        raise ValueError(f"scene {scene.name!r}: its gravity {tuple(scene.gravity)} is not that of task {task.name!r} "
+                         f"{tuple(base.gravity)}, which this surrogate has no input for (it would be left out)")
+    if not task.custom:
+        for what in ("torque", "field"):
+            if getattr(scene.loads, what) is not None:
+                raise ValueError(f"scene {scene.name!r}: loads.{what} is set, which a surrogate of task "
+                                 f"{task.name!r} has no input for (it sees forces on nodes {list(task.wrench_nodes)} "
+                                 f"only); it would be left out")
 
 
 class SurrogateDivergence(RuntimeError):
@@ -216,11 +229,19 @@ class Surrogate:
             raise ValueError(f"scene_wrench: n_steps must be an integer >= 0, got {n_steps!r}")
         W = torch.zeros(n_steps, len(self.task.wrench_nodes), 3, dtype=torch.float32)
         force, idx, d = scene.loads.force, list(self.task.wrench_nodes), self.task.delta
-        if force is not None and idx:
+        if force is not None:
             for k in range(n_steps):
-                f = force(torch.tensor((k + 0.5) * d, dtype=torch.float64))
-                if f is not None:
-                    W[k] = f[..., idx, :].float()
+                f = scene.loads.evaluate_force(torch.tensor((k + 0.5) * d, dtype=torch.float64))
+                if f is None:
+                    continue
+                unseen = f.clone()
+                unseen[..., idx, :] = 0  # what acts on nodes the model has no input for
+                unseen = (unseen != 0).any(-1).reshape(-1, f.shape[-2]).any(0)
+                if bool(unseen.any()):
+                    raise ValueError(f"scene {scene.name!r}: a force acts on node {int(unseen.nonzero()[0, 0])} at "
+                                     f"t = {(k + 0.5) * d:.4g} s, but a surrogate of task {self.task.name!r} sees "
+                                     f"forces on nodes {idx} only (it would be left out)")
+                W[k] = f[..., idx, :].float()
         return node_wrench(W, self.task.wrench_nodes, self.task.modeled)
 
     @property
@@ -236,8 +257,7 @@ class Surrogate:
         (:class:`Stepper`; the model on a CUDA device). A task with its own physics (``task.custom``, e.g. the
         magnetic rod) runs its closed-loop rollout instead, on the CPU. :class:`SurrogateDivergence` where the rollout
         runs away (:func:`check_rollout`)."""
-        if duration is not None and not duration > 0:
-            raise ValueError(f"duration must be a positive time (s) or None for the scene's, got {duration}")
+        self.task.check_duration(duration)
         dev = self.device
         hook = self.task.hook("run_scene")
         if hook is not None:
@@ -287,7 +307,11 @@ class Surrogate:
             wrench, ref = torch.zeros(1, K, 3), hist[:, 0]
             return median_latency(lambda: self.step(hist, wrench, ref), n, warmup)
         p0 = self._initial_points(scene)
-        wrench = self.scene_wrench(scene, int(round(scene.duration / self.task.delta)))
+        n_scene = int(round(scene.duration / self.task.delta))
+        if n_scene < 1:
+            raise ValueError(f"step_latency: scene {scene.name!r} lasts {scene.duration:g} s, less than one surrogate "
+                             f"step ({self.task.delta:g} s)")
+        wrench = self.scene_wrench(scene, n_scene)
         times = []
         with self.symmetric(self._symmetry(p0, wrench)):
             for k in range(warmup + n):
