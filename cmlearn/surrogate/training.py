@@ -11,6 +11,8 @@ second-difference scale, the same for every node, so the loss weighs millimetres
 from __future__ import annotations
 
 import atexit
+import math
+import numbers
 
 import lightning as L
 import torch
@@ -159,6 +161,12 @@ class SurrogateModule(L.LightningModule):
             raise ValueError(f"motion_floor must be > 0 metres, got {motion_floor!r}")
         if not one_step_weight >= 0:
             raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
+        if not (isinstance(noise, numbers.Real) and math.isfinite(noise) and noise >= 0):  # NaN skipped every batch
+            raise ValueError(f"noise must be a finite number >= 0 (metres; 0 for none), got {noise!r}")
+        if not (isinstance(lr, numbers.Real) and math.isfinite(lr) and lr > 0):
+            raise ValueError(f"lr must be a finite number > 0, got {lr!r}")
+        if not (isinstance(horizon, int) and horizon >= 1):
+            raise ValueError(f"horizon must be an integer >= 1 (steps), got {horizon!r}")
         self.model, self.wrench_fn = model, wrench_fn  # wrench_fn(frame, inputs_h) -> (B, K, 3): closed loop
         self.noise, self.step_weighting, self.one_step_weight = noise, step_weighting, one_step_weight
         self.noise_shape, self.window_weighting, self.motion_floor = noise_shape, window_weighting, motion_floor
@@ -192,7 +200,10 @@ class SurrogateModule(L.LightningModule):
         m = self.model
         idx = m.idx_modeled
         fn, wrench_fn = None, wrench_fn or self.wrench_fn
-        if wrench_fn is not None and len(batch) > 4:
+        if wrench_fn is not None:
+            if len(batch) <= 4:  # it ran open loop, silently
+                raise ValueError("wrench_fn: a closed-loop rollout needs batches with the loop's inputs "
+                                 "(SurrogateDataModule(inputs=...))")
             inputs = batch[4]
             fn = lambda h, frame: wrench_fn(frame, inputs[:, h])  # noqa: E731
         pred = m.rollout(hist, wrench[:, :horizon], ref, anchors=future[:, :horizon], wrench_fn=fn)
