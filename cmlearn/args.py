@@ -13,9 +13,9 @@ __all__ = ["opt", "dataclass_parser", "bounded", "writable", "readable"]
 
 def opt(default, help: str, choices=None, at_least=None, above=None, path: str | None = None):
     """A dataclass field whose ``help`` is the argument's ``--help`` text, ``choices`` its valid values,
-    ``at_least`` / ``above`` its lower bound (inclusive / exclusive) and ``path`` ("file" or "folder": an output
-    the run writes, :func:`writable`; "input": a file it reads, :func:`readable`), checked as the command line is
-    parsed."""
+    ``at_least`` / ``above`` its lower bound (inclusive / exclusive) and ``path`` ("file", "folder" or
+    "checkpoint": an output the run writes, :func:`writable`; "input": a file it reads, :func:`readable`), checked as
+    the command line is parsed."""
     return field(default=default, metadata={"help": help, "choices": choices, "at_least": at_least, "above": above,
                                             "path": path})
 
@@ -38,11 +38,14 @@ def bounded(kind, at_least=None, above=None):
     return convert
 
 
-def writable(folder: bool = False, kind=str):
+def writable(folder: bool = False, kind=str, checkpoint: bool = False):
     """An argparse ``type``: an output file (or ``folder``) the run will write, as ``kind`` of the text, checked
     by :func:`cmlearn.io.check_writable` as the command line is parsed (before hours of training end in an
-    unwritable path); the empty text (the script's default path) passes unchecked."""
+    unwritable path); the empty text (the script's default path) passes unchecked. ``checkpoint``: weights whose
+    metadata go beside them as ``<name>.json`` (:func:`cmlearn.io.save_sealed`), so not a name ending in .json."""
     def convert(text: str):
+        if checkpoint and text.endswith(".json"):
+            raise argparse.ArgumentTypeError(f"must not end in .json (the metadata goes to <name>.json), got {text!r}")
         if text:
             from .io import check_writable
             try:
@@ -78,6 +81,6 @@ def dataclass_parser(cls, description: str) -> argparse.ArgumentParser:
         elif meta.get("path") == "input":
             kind = readable()
         elif meta.get("path"):
-            kind = writable(meta["path"] == "folder")
+            kind = writable(meta["path"] == "folder", checkpoint=meta["path"] == "checkpoint")
         ap.add_argument(flag, type=kind, default=f.default, help=meta["help"], choices=meta["choices"])
     return ap

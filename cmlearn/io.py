@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import BinaryIO, Callable
 
 __all__ = ["atomic_write", "write_text_atomic", "save_torch_atomic", "check_writable", "CheckpointError",
-           "weights_digest", "header_digest", "seal", "check_digests"]
+           "weights_digest", "header_digest", "seal", "check_digests", "save_sealed"]
 
 
 class CheckpointError(ValueError):
@@ -126,3 +126,14 @@ def save_torch_atomic(path: str | Path, obj) -> Path:
     """``torch.save(obj)`` to ``path`` atomically."""
     import torch
     return atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def save_sealed(path: str | Path, blob: dict) -> Path:
+    """:func:`seal` ``blob`` and save it to ``path``, and its plain-JSON ``"meta"`` beside it as ``<name>.json``, each
+    atomically; a ValueError where ``path`` itself ends in .json (the metadata overwrote the weights just written)."""
+    path = Path(path)
+    if path.suffix == ".json":
+        raise ValueError(f"path must not end in .json (the metadata goes to <name>.json), got {str(path)!r}")
+    save_torch_atomic(path, seal(blob))
+    write_text_atomic(path.with_suffix(".json"), json.dumps(blob["meta"], indent=2, default=str) + "\n")
+    return path

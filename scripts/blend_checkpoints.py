@@ -48,7 +48,7 @@ def parse(argv=None) -> argparse.Namespace:
                     help="also score A, B and the blend on fresh variants")
     ap.add_argument("--val-variants", type=bounded(int, at_least=1), default=16, help="fresh variants --val-seed draws")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", type=writable(), required=True, help="the blended checkpoint (.pt)")
+    ap.add_argument("--out", type=writable(checkpoint=True), required=True, help="the blended checkpoint (.pt)")
     a = ap.parse_args(argv)
     if not 0.0 <= a.alpha <= 1.0:
         ap.error(f"--alpha must be in [0, 1], got {a.alpha}")

@@ -72,7 +72,7 @@ def parse(argv=None) -> argparse.Namespace:
                     help="score the fresh variants at every n-th evaluation")
     ap.add_argument("--device", default="cpu", help="torch device of the refinement (cpu, cuda, cuda:1, ...)")
     ap.add_argument("--threads", type=bounded(int, at_least=1), default=1, help="torch CPU threads")
-    ap.add_argument("--out", type=writable(), required=True, help="the refined checkpoint (.pt)")
+    ap.add_argument("--out", type=writable(checkpoint=True), required=True, help="the refined checkpoint (.pt)")
     a = ap.parse_args(argv)
     if a.val_seed is not None and a.val_seed == a.seed:
         ap.error(f"--val-seed {a.val_seed} is the data's --seed: its variants are trained on")

@@ -42,7 +42,7 @@ def parse(argv=None):
             ap.add_argument(flag, type=kind, default=f.default)
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--quick", action="store_true", help="smoke-test budget")
-    ap.add_argument("--ship", type=writable(), default="", help="copy the final agent checkpoint here")
+    ap.add_argument("--ship", type=writable(checkpoint=True), default="", help="copy the final agent checkpoint here")
     ap.add_argument("--ship-best", action="store_true",
                     help="with --ship: copy the agent of the best periodic evaluation instead of the final one")
     ns = ap.parse_args(argv)
@@ -56,8 +56,6 @@ def parse(argv=None):
         config_from_args(ns)
     except (TypeError, ValueError) as e:
         ap.error(str(e))
-    if ns.ship.endswith(".json"):  # save_agent writes the metadata to <name>.json: refused after the whole run
-        ap.error(f"argument --ship: must not end in .json (the metadata goes to <name>.json), got {ns.ship!r}")
     return ns
 
 

@@ -60,7 +60,7 @@ class Args:
                         "on (0: none)", at_least=0)
     fresh_seed: int = opt(1, "the seed of the --fresh profiles (must differ from --seed)", at_least=0)
     out: str = opt("", "checkpoint path (default checkpoints/<task>_quasistatic.pt; with --quick "
-                       "runs/quick/<task>_quasistatic.pt, so a smoke test never replaces a shipped model)", path="file")
+                       "runs/quick/<task>_quasistatic.pt, so a smoke test never replaces a shipped model)", path="checkpoint")
     resume: str = opt("", "a Lightning checkpoint to resume", path="input")
     init_from: str = opt("", "a hybrid checkpoint whose network (LSTM, dense layers, head) starts the training; its "
                              "--increments, --hidden, --width, --margin and --fold-clock must match, --eta may "

@@ -120,7 +120,7 @@ class Args:
     compile_data: bool = opt(False, "generate a missing dataset with the LGVI's compiled rollout (its program compiled "
                                     "ahead of time; equal to the eager LGVI to round-off; not for the magnetic rod)")
     out: str = opt("", "the shipped checkpoint to write (empty: checkpoints/<task>.pt; with --quick runs/quick/<task>.pt, "
-                       "so a smoke test never replaces a shipped model)", path="file")
+                       "so a smoke test never replaces a shipped model)", path="checkpoint")
     log_dir: str = opt("logs", "CSV / TensorBoard logs and Lightning checkpoints", path="folder")
     resume: str = opt("", "a Lightning checkpoint (.ckpt) whose run (weights, optimiser, schedule) continues",
                       path="input")

@@ -56,6 +56,9 @@ SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (
 OUTPUTS = ("out", "data_dir", "log_dir", "ship", "report")
 #: the options naming a file a run starts from or measures
 INPUTS = ("resume", "init_from", "init", "checkpoint", "checkpoints", "agent", "run", "start", "end")
+#: the options naming weights written with their metadata beside them as <name>.json
+CHECKPOINT_OUTPUTS = {("train_surrogate", "out"), ("train_quasistatic", "out"), ("refine_surrogate", "out"),
+                      ("blend_checkpoints", "out"), ("train_agent", "ship")}
 
 
 @pytest.mark.parametrize("name", SCRIPTS)
@@ -99,6 +102,11 @@ def test_every_numeric_option_of_every_script_is_checked_as_it_is_parsed(name, m
             err = capsys.readouterr().err
             assert e.value.code == 2 and f"argument {flag}: cannot write" in err and "is a file" in err, err[-300:]
             assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+        if (name, act.dest) in CHECKPOINT_OUTPUTS:  # the metadata overwrote the weights at the end of the run
+            with pytest.raises(SystemExit) as e:
+                ap.parse_args([flag, str(tmp_path / "model.json")])
+            err = capsys.readouterr().err
+            assert e.value.code == 2 and f"argument {flag}: must not end in .json" in err, err[-300:]
         # train_agent's --resume is a switch (its run folder's state); eval_controllers loads --agent as it parses
         # when an iqn controller is asked for (test_rl_scripts), and runs the others without one; report_surrogates'
         # --checkpoints is the folder it lists; the reports whose --checkpoints option also finds a path under the

@@ -1018,6 +1018,14 @@ def test_a_rollout_loss_longer_than_the_windows_is_refused():
     assert module.rollout_loss(batch, 2)[1].shape == (2, 2, N, 3)
     with pytest.raises(ValueError, match="horizon 4 exceeds the batch's 2 future frames"):
         module.rollout_loss(batch, 4)
+    # a closed-loop wrench_fn on batches without the loop's inputs ran open loop, silently
+    with pytest.raises(ValueError, match=r"wrench_fn: a closed-loop rollout needs batches with the loop's inputs"):
+        SurrogateModule(model, horizon=2, wrench_fn=lambda frame, inputs: torch.zeros(2, K, 3)).rollout_loss(batch, 2)
+    # NaN noise made every batch NaN, and every batch was skipped; a negative one trained without noise
+    for kw, name in ((dict(noise=math.nan), "noise"), (dict(noise=-0.5), "noise"), (dict(lr=0.0), "lr"),
+                     (dict(horizon=0), "horizon"), (dict(horizon=2.5), "horizon")):
+        with pytest.raises(ValueError, match=rf"^{name} must be"):
+            SurrogateModule(model, **kw)
 
 
 def test_train_surrogate_refuses_keeping_no_checkpoint(capsys):
@@ -1235,6 +1243,9 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path):
         prm.data.fill_(0.01)
     path = save_checkpoint(tmp_path / "m.pt", model, {"task": "semicircle", "metrics": {}})
     assert json.loads(path.with_suffix(".json").read_text())["task"] == "semicircle"
+    with pytest.raises(ValueError, match="path must not end in .json"):  # its metadata overwrote the weights
+        save_checkpoint(tmp_path / "w.json", model, {"task": "semicircle"})
+    assert not (tmp_path / "w.json").exists()
     loaded, meta = load_checkpoint(path, task="semicircle")
     hist = torch.randn(1, 3, len(task.tracked), 3) * 0.01
     w = torch.zeros(1, len(task.modeled), 3)
@@ -1333,8 +1344,26 @@ def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
         engine.step(hist, wrench.double(), ref)
     with pytest.raises(ValueError, match="scene_wrench: n_steps must be an integer >= 0, got -1"):
         engine.scene_wrench(get_task("semicircle").base_scene(), -1)
-    with pytest.raises(ValueError, match="duration must be a positive time"):
-        engine.run_scene(get_task("semicircle").base_scene(), duration=-1.0)
+    for bad in (-1.0, 0.004, math.inf, "0.5"):  # 0.004 s: no step of 0.01 s (it returned the initial frame alone)
+        with pytest.raises(ValueError, match="duration must be a time of at least one surrogate step"):
+            engine.run_scene(get_task("semicircle").base_scene(), duration=bad)
+    with pytest.raises(ValueError, match="step_latency: scene 'semicircle' lasts 0.004 s, less than one"):
+        engine.step_latency(n=1, warmup=0, scene=replace(engine.task.base_scene(), duration=0.004))
+    # loads the surrogate has no input for are refused, not left out (the rod stayed at rest where the LGVI moved
+    # it 18 mm under a push on node 45 and 390 mm under gravity)
+    from physics.loads import Loads
+    from physics.scenes_paper2 import NodePulse
+    base = engine.task.base_scene()
+    push45 = replace(base, name="push45", loads=Loads(force=NodePulse(101, 45, (0.0, -1.0, 0.0), 0.02, 0.1, 0.3)))
+    with pytest.raises(ValueError, match=r"scene 'push45': a force acts on node 45 at t = 0.105 s, but a surrogate "
+                                         r"of task 'semicircle' sees forces on nodes \[50\] only"):
+        engine.run_scene(push45)
+    with pytest.raises(ValueError, match=r"scene 'semicircle': its gravity \(0.0, 0.0, -9.81\) is not that of task"):
+        engine.run_scene(replace(base, gravity=(0.0, 0.0, -9.81)), duration=0.05)
+    with pytest.raises(ValueError, match="scene 'semicircle': loads.torque is set, which a surrogate of task"):
+        engine.run_scene(replace(base, loads=replace(base.loads, torque=torch.zeros(101, 3))), duration=0.05)
+    with pytest.raises(ValueError, match="scene 'semicircle': its base moves, unlike in task 'semicircle'"):
+        engine.run_scene(replace(base, base_motion=lambda t: None), duration=0.05)
     with pytest.raises(ValueError, match="n must be >= 1"):
         engine.step_latency(n=0)
     magnetic = Surrogate.load(ROOT / "checkpoints" / "magnetic_rod.pt")  # a task with its own rollout

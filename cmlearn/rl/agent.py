@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmlearn.io import CheckpointError, check_digests, save_torch_atomic, seal, write_text_atomic
+from cmlearn.io import CheckpointError, check_digests, save_sealed
 from cmlearn.models.iqn import IQNConfig, IQNNetwork
 
 from .env import ACTIONS
@@ -42,15 +42,10 @@ AGENT_FORMAT = "cmlearn-iqn-agent/1"
 
 def save_agent(path: str | Path, network: IQNNetwork, meta: dict) -> Path:
     """Write the network's weights and plain-JSON ``meta`` atomically (plus ``<name>.json``)."""
-    path = Path(path)
-    if path.suffix == ".json":  # the metadata copy would overwrite the checkpoint itself
-        raise ValueError(f"path must not end in .json (the metadata goes to <name>.json), got {str(path)!r}")
     meta = json.loads(json.dumps(meta, default=str))
     state = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
-    blob = seal({"format": AGENT_FORMAT, "config": network.config.to_dict(), "state_dict": state, "meta": meta})
-    save_torch_atomic(path, blob)
-    write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2) + "\n")
-    return path
+    return save_sealed(path, {"format": AGENT_FORMAT, "config": network.config.to_dict(), "state_dict": state,
+                              "meta": meta})
 
 
 def load_agent(path: str | Path) -> tuple[IQNNetwork, dict]:

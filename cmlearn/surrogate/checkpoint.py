@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from cmlearn.data.tasks import TASKS
-from cmlearn.io import CheckpointError, check_digests, save_torch_atomic, seal, write_text_atomic
+from cmlearn.io import CheckpointError, check_digests, save_sealed
 from cmlearn.models import NodeLSTMConfig, NodeLSTMSurrogate
 
 __all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "read_blob", "load_checkpoint", "surrogate_checkpoints", "provenance"]
@@ -38,14 +38,9 @@ def plain_meta(meta: dict) -> dict:
 
 
 def save_checkpoint(path: str | Path, model: NodeLSTMSurrogate, meta: dict) -> Path:
-    path = Path(path)
-    meta = plain_meta(meta)
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    blob = seal({"format": FORMAT, "model_class": type(model).__name__, "config": model.config.to_dict(),
-                 "state_dict": state, "meta": meta})
-    save_torch_atomic(path, blob)
-    write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2, default=str) + "\n")
-    return path
+    return save_sealed(path, {"format": FORMAT, "model_class": type(model).__name__,
+                              "config": model.config.to_dict(), "state_dict": state, "meta": plain_meta(meta)})
 
 
 def read_blob(path: str | Path, fmt: str, task: str | None = None) -> tuple[dict, dict]:

@@ -11,7 +11,6 @@ profiles from rest.
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import replace
@@ -26,7 +25,7 @@ from cmlearn.data.quasistatic import (StaticTrack, cached_static_track, compose,
                                       static_track, with_fold_clock)
 from cmlearn.data.tasks import get_task
 from cmlearn.data.windows import split_ranges
-from cmlearn.io import CheckpointError, save_torch_atomic, seal, write_text_atomic
+from cmlearn.io import CheckpointError, save_sealed
 from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from physics.lie import so3_exp
 
@@ -43,13 +42,9 @@ FORMAT = "cmlearn-quasistatic/1"
 
 def save_quasistatic(path: str | Path, model: QuasiStaticCorrection, meta: dict) -> Path:
     """Write the checkpoint and its JSON metadata (``<name>.json``) atomically."""
-    path = Path(path)
-    meta = plain_meta({**meta, "format": FORMAT})
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    blob = seal({"format": FORMAT, "config": model.config.to_dict(), "meta": meta, "state_dict": state})
-    save_torch_atomic(path, blob)
-    write_text_atomic(path.with_suffix(".json"), json.dumps(meta, indent=2) + "\n")
-    return path
+    return save_sealed(path, {"format": FORMAT, "config": model.config.to_dict(),
+                              "meta": plain_meta({**meta, "format": FORMAT}), "state_dict": state})
 
 
 def rest_rotations(task) -> Tensor:
