@@ -106,7 +106,7 @@ class Args:
                          sorted(SELECT_METRICS))
     val_fresh: int = opt(0, "validate on this many fresh variants of the scene (--val-seed, LGVI runs cached) "
                             "instead of the dataset's last variant, which then trains (0: off)", at_least=0)
-    val_seed: int = opt(-1, "the fresh validation variants' seed (-1: --seed + 1)")
+    val_seed: int = opt(-1, "the fresh validation variants' seed, with --val-fresh (-1: --seed + 1)", at_least=-1)
     val_tail: float = opt(0.0, "this fraction of the printed scene's trajectory, just before the 60 %% cut, "
                                "validates instead of training (the thesis's protocol: --variants 1 --val-tail 0.15)",
                                at_least=0)
@@ -153,6 +153,12 @@ def parse(argv=None) -> Args:
     if a.variants < 2 and not (a.val_tail or a.val_fresh):
         ap.error(f"--variants {a.variants} leaves no variant to validate on (the printed scene's last 40 % is the "
                  "test): give --val-tail F (the thesis's one-trajectory protocol), --val-fresh N or more variants")
+    if a.val_seed >= 0 and not a.val_fresh:
+        ap.error(f"--val-seed {a.val_seed} seeds the --val-fresh variants, and none are asked for")
+    if a.motion_floor != Args.motion_floor and a.window_weighting != "inverse_motion":
+        ap.error(f"--motion-floor {a.motion_floor} is the floor of --window-weighting inverse_motion, which is off")
+    if a.noise_shape != Args.noise_shape and not a.noise:
+        ap.error(f"--noise-shape {a.noise_shape} shapes the training noise, and --noise is 0")
     if a.val_seed < 0:
         a.val_seed = a.seed + 1
     if a.val_fresh and a.val_seed == a.seed:

@@ -468,6 +468,12 @@ def test_train_surrogate_selects_by_the_validation_rollout_and_reports_every_epo
                        (["--horizon", "two"], "argument --horizon: must be an integer, got 'two'"),
                        (["--mix-width", "8"], "--mix-width must be 0, or in 1..--hidden (48) with --mix 1 or 2"),
                        (["--val-fresh", "2", "--val-seed", "0"], "--val-seed must differ from --seed 0"),
+                       # options that did nothing without the one they belong to
+                       (["--val-seed", "7"], "--val-seed 7 seeds the --val-fresh variants, and none are asked for"),
+                       (["--val-fresh", "2", "--val-seed", "-5"], "argument --val-seed: must be >= -1, got '-5'"),
+                       (["--motion-floor", "0.05"], "--motion-floor 0.05 is the floor of --window-weighting "
+                                                    "inverse_motion, which is off"),
+                       (["--noise-shape", "offset"], "--noise-shape offset shapes the training noise, and --noise is 0"),
                        (["--val-tail", "0.6"], "--val-tail must lie in [0, 0.6)"),
                        (["--val-tail", "0.1", "--val-fresh", "2"], "--val-tail and --val-fresh exclude"),
                        (["--variants", "1"], "--variants 1 leaves no variant to validate on"),

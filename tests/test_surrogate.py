@@ -1022,7 +1022,7 @@ def test_a_rollout_loss_longer_than_the_windows_is_refused():
     with pytest.raises(ValueError, match=r"wrench_fn: a closed-loop rollout needs batches with the loop's inputs"):
         SurrogateModule(model, horizon=2, wrench_fn=lambda frame, inputs: torch.zeros(2, K, 3)).rollout_loss(batch, 2)
     # NaN noise made every batch NaN, and every batch was skipped; a negative one trained without noise
-    for kw, name in ((dict(noise=math.nan), "noise"), (dict(noise=-0.5), "noise"), (dict(lr=0.0), "lr"),
+    for kw, name in ((dict(noise=math.nan), "noise"), (dict(noise=-0.5), "noise"), (dict(lr=-1e-3), "lr"),
                      (dict(horizon=0), "horizon"), (dict(horizon=2.5), "horizon")):
         with pytest.raises(ValueError, match=rf"^{name} must be"):
             SurrogateModule(model, **kw)

@@ -163,8 +163,8 @@ class SurrogateModule(L.LightningModule):
             raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
         if not (isinstance(noise, numbers.Real) and math.isfinite(noise) and noise >= 0):  # NaN skipped every batch
             raise ValueError(f"noise must be a finite number >= 0 (metres; 0 for none), got {noise!r}")
-        if not (isinstance(lr, numbers.Real) and math.isfinite(lr) and lr > 0):
-            raise ValueError(f"lr must be a finite number > 0, got {lr!r}")
+        if not (isinstance(lr, numbers.Real) and math.isfinite(lr) and lr >= 0):
+            raise ValueError(f"lr must be a finite number >= 0 (0: the weights stay), got {lr!r}")
         if not (isinstance(horizon, int) and horizon >= 1):
             raise ValueError(f"horizon must be an integer >= 1 (steps), got {horizon!r}")
         self.model, self.wrench_fn = model, wrench_fn  # wrench_fn(frame, inputs_h) -> (B, K, 3): closed loop
