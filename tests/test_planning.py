@@ -185,3 +185,14 @@ def test_planners_reject_bad_input_instead_of_a_silent_result():
     for cls in (AttractorController, ERRTController):
         with pytest.raises(ValueError, match="mpp"):
             cls(0.0)
+        # a NaN threshold saw no obstacle (the controllers steered into walls), a negative margin failed later
+        for kw, msg in ((dict(threshold=math.nan), r"threshold \(a grey level"), (dict(threshold=300), "threshold"),
+                        (dict(margin=-0.05), "margin must be finite and >= 0")):
+            with pytest.raises(ValueError, match=msg):
+                cls(0.002, **kw)
+    with pytest.raises(ValueError, match="tile must be an integer >= 1"):
+        AttractorController(0.002, tile=0)
+    with pytest.raises(ValueError, match="K must be a finite scalar or 2x2"):
+        AttractorController(0.002, K=math.nan)
+    with pytest.raises(ValueError, match="move must be finite and > 0"):
+        ERRTController(0.002, move=0.0)

@@ -70,6 +70,8 @@ def test_goal_within_lookahead_is_the_waypoint_and_bad_input():
         pl.plan((float("nan"), 0.15))
     with pytest.raises(ValueError, match=r"view must be a square \(n, n\)"):
         pl.add_view(np.full((84, 40), 230, np.uint8), (0.12, 0.15))
+    with pytest.raises(ValueError, match="view_xy must be a finite"):  # NaN: the view was dropped without a word
+        pl.add_view(np.full((84, 84), 230, np.uint8), (float("nan"), 0.15))
 
 
 pytest.importorskip("pybullet")

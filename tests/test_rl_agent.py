@@ -1,5 +1,7 @@
 """The Rainbow-IQN agent: network, IQN loss, replay priorities, noise, training, checkpoints, resume."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -474,6 +476,11 @@ def test_acting_guard_predicts_the_obstacle_rule_and_breaks_cycles():
     assert agent.act(obs) == order[0]
     with pytest.raises(ValueError, match="revisit_penalty"):
         ActingGuard(revisit_penalty=-1.0)
+    for t in (math.nan, -5.0, 1e9):  # NaN blocked no move, even on an all-dark view
+        with pytest.raises(ValueError, match=r"threshold \(a grey level"):
+            ActingGuard(threshold=t)
+    with pytest.raises(ValueError, match="obs: the network's action values are not finite"):  # was action 0
+        IQNAgent(IQNNetwork(IQNConfig(**SMALL))).act(np.full((2, 84, 84), np.nan, np.float32))
 
 
 def test_target_network_is_copied_after_every_target_update_th_update():
@@ -558,3 +565,11 @@ def test_save_agent_refuses_a_json_path(tmp_path):
     with pytest.raises(ValueError, match=r"path must not end in \.json"):
         save_agent(tmp_path / "agent.json", IQNNetwork(IQNConfig(**SMALL)), {})
     assert not (tmp_path / "agent.json").exists()
+
+
+def test_evaluate_agent_refuses_no_episodes():
+    """``episodes=0`` returned NaN for every metric (the mean of no episodes)."""
+    from cmlearn.rl.training import evaluate_agent
+    for n in (0, -3, 2.0):
+        with pytest.raises(ValueError, match=f"episodes must be an integer >= 1, got {n}"):
+            evaluate_agent(IQNAgent(IQNNetwork(IQNConfig(**SMALL))), {}, n)

@@ -348,3 +348,27 @@ def test_a_given_start_or_goal_gets_a_connected_partner():
     with pytest.raises(ValueError, match="origin must be 2 finite coordinates"):
         Map(img, 0.002, (math.nan, 0.35))
     env.close()
+
+
+def test_settings_that_did_nothing_are_refused(tmp_path):
+    """A map_path beside the default map_seeds was ignored (the procedural maps ran), maps=[] fell back to them,
+    a misspelt reset option drew a random map and goal, and disturbance steps that can never come (0, before
+    min_step, past max_count) were dropped."""
+    import cv2
+    cv2.imwrite(str(tmp_path / "hall.png"), corridor().image)
+    with pytest.raises(ValueError, match=r"map_path .*hall.png' and map_seeds .*give map_seeds=\(\) with map_path"):
+        MagneticParticleEnv(map_path=str(tmp_path / "hall.png"))
+    with pytest.raises(ValueError, match="map_path: no such map image"):
+        MagneticParticleEnv(map_seeds=(), map_path=str(tmp_path / "none.png"))
+    env = MagneticParticleEnv(map_seeds=(), map_path=str(tmp_path / "hall.png"), atlas_cache=None)
+    assert env.reset(seed=0)[1]["map"] == "hall"
+    with pytest.raises(TypeError, match=r"maps must be a non-empty list .*got \[\]"):
+        MagneticParticleEnv(maps=[])
+    with pytest.raises(ValueError, match=r"options: unknown key\(s\) \['map_idx'\]"):
+        env.reset(seed=0, options={"map_idx": 0})
+    for kw in ({"at_steps": (0,), "min_step": 0}, {"at_steps": (3,)}, {"at_steps": (5, 6, 7)}):
+        with pytest.raises(ValueError, match=r"at_steps must be at most max_count \(2\) steps, each >= 1 and >= "):
+            DisturbanceConfig(**kw)
+    assert DisturbanceConfig(at_steps=(5, 9)).at_steps == (5, 9)
+    with pytest.raises(TypeError, match="max_steps"):  # validated and never read: the recapture limit is
+        rl.SwitchingConfig(max_steps=1)                # EnvConfig.sc1_max_steps

@@ -74,8 +74,8 @@ class AttractorDynamics:
     def __init__(self, K=2.0, rho: float = 1.0, A=None, B=None):
         K = np.asarray(K, dtype=float)
         self.K = K * np.eye(2) if K.ndim == 0 else K
-        if self.K.shape != (2, 2):
-            raise ValueError(f"K must be a scalar or 2x2, got shape {self.K.shape}")
+        if self.K.shape != (2, 2) or not np.isfinite(self.K).all():
+            raise ValueError(f"K must be a finite scalar or 2x2, got {self.K.tolist()}")
         self.A = np.eye(2) if A is None else np.asarray(A, dtype=float)
         self.B = np.eye(2) if B is None else np.asarray(B, dtype=float)
         if self.A.shape != (2, 2) or self.B.shape != (2, 2):

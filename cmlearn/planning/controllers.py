@@ -20,6 +20,7 @@ of the workspace. Both turn a desired Cartesian direction into one of the 4 disc
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 
@@ -38,6 +39,24 @@ def direction_to_action(v) -> int:
     if v.shape != (2,) or not np.isfinite(v).all():
         raise ValueError(f"v must be a finite 2-D direction, got {v.tolist()}")
     return int(np.argmax(_DIRS @ v))
+
+
+def _check_settings(grey=None, lengths=None, positive=None, counts=None) -> None:
+    """ValueError naming the setting unless each of ``grey`` is a grey level in [0, 255] (a NaN threshold found no
+    obstacle at all), each of ``lengths`` finite and >= 0, each of ``positive`` finite and > 0 and each of ``counts``
+    an integer >= 1."""
+    for name, v in (grey or {}).items():
+        if not (isinstance(v, numbers.Real) and 0 <= v <= 255):
+            raise ValueError(f"{name} (a grey level: darker is an obstacle) must be in [0, 255], got {v!r}")
+    for name, v in (lengths or {}).items():
+        if not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"{name} must be finite and >= 0 (m), got {v!r}")
+    for name, v in (positive or {}).items():
+        if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+    for name, v in (counts or {}).items():
+        if not (isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1):
+            raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
 
 
 def pixel_to_world(view_xy, rc, size: int, mpp: float):
@@ -76,6 +95,7 @@ class AttractorController:
                  threshold: int = 50):
         if not (math.isfinite(mpp) and mpp > 0):
             raise ValueError(f"mpp (metres per pixel) must be finite and > 0, got {mpp}")
+        _check_settings(grey={"threshold": threshold}, lengths={"margin": margin}, counts={"tile": tile})
         self.dyn = AttractorDynamics(K, rho)
         self.mpp, self.margin, self.tile, self.threshold = mpp, margin, tile, threshold
         self.obstacles: list[Superellipse] = []
@@ -95,6 +115,8 @@ class ERRTController:
                  step: float = 0.02, max_nodes: int = 1500, lookahead: float = 0.012, move: float = 0.01, seed: int = 0):
         if not (math.isfinite(mpp) and mpp > 0):
             raise ValueError(f"mpp (metres per pixel) must be finite and > 0, got {mpp}")
+        _check_settings(grey={"threshold": threshold}, lengths={"margin": margin},
+                       positive={"lookahead": lookahead, "move": move}, counts={"min_size": min_size})
         self.mpp, self.margin, self.min_size, self.threshold = mpp, margin, min_size, threshold
         self.bounds, self.step, self.max_nodes, self.lookahead, self.seed = bounds, step, max_nodes, lookahead, seed
         self.move = move

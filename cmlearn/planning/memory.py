@@ -84,6 +84,9 @@ class MemoryPlanner:
         view = np.asarray(view)
         if view.ndim != 2 or view.shape[0] != view.shape[1]:
             raise ValueError(f"view must be a square (n, n) grayscale image, got shape {view.shape}")
+        xy = np.asarray(view_xy, dtype=float)
+        if xy.shape != (2,) or not np.isfinite(xy).all():  # NaN cells were masked off: the view was dropped
+            raise ValueError(f"view_xy must be a finite (x, y) in metres, got {view_xy!r}")
         n = view.shape[0]
         k = (np.arange(n) + 0.5 - n / 2) * self.mpp
         r, c = np.broadcast_arrays(*self._cells(view_xy[0] + k[None, :], view_xy[1] - k[:, None]))

@@ -91,6 +91,9 @@ class ActingGuard:
             raise ValueError(f"window must be an int >= 1, got {self.window!r}")
         if not (np.isfinite(self.revisit_penalty) and self.revisit_penalty >= 0):
             raise ValueError(f"revisit_penalty must be finite and >= 0, got {self.revisit_penalty}")
+        if not 0 <= self.threshold <= 255:  # NaN blocked no move
+            raise ValueError(f"threshold (a grey level: a darker window is an obstacle) must be in [0, 255], got "
+                             f"{self.threshold}")
 
     def blocked(self, view: np.ndarray) -> np.ndarray:
         """(num_actions,) bool: the obstacle rule on the window each move would bring under the camera."""
@@ -126,6 +129,9 @@ class IQNAgent:
 
     def act(self, obs, info=None) -> int:
         q = self.q_values(obs).astype(np.float64)
+        if not np.isfinite(q).all():  # the argmax of NaN is the first action
+            raise ValueError(f"obs: the network's action values are not finite ({q.tolist()}); the observation "
+                             "holds a NaN or infinite pixel")
         g = self.guard
         if g is None:
             return int(np.argmax(q))

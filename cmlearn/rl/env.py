@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 from dataclasses import dataclass, field, fields, replace
 
 import gymnasium as gym
@@ -89,6 +90,12 @@ class DisturbanceConfig:
                 raise ValueError(f"{name} must be an integer >= 0, got {getattr(self, name)!r}")
         if not all(_count(k) for k in self.at_steps):
             raise ValueError(f"at_steps must be step numbers (integers >= 0), got {self.at_steps!r}")
+        # a step that can never disturb was dropped silently: the first step is 1, none comes before min_step, and
+        # no more than max_count come in an episode
+        first = max(1, self.min_step)
+        if any(k < first for k in self.at_steps) or len(set(self.at_steps)) > self.max_count:
+            raise ValueError(f"at_steps must be at most max_count ({self.max_count}) steps, each >= 1 and >= "
+                             f"min_step ({self.min_step}), got {self.at_steps!r}")
 
     @property
     def active(self) -> bool:
@@ -153,6 +160,12 @@ class EnvConfig:
             raise ValueError("waypoint_prior=True needs waypoint_lookahead > 0 (the prior is the waypoint planner's memory)")
         if not self.map_seeds and self.map_path is None:
             raise ValueError("map_seeds is empty and map_path is None: the environment has no map")
+        if self.map_path is not None:  # it was ignored beside the default map_seeds
+            if self.map_seeds:
+                raise ValueError(f"map_path {self.map_path!r} and map_seeds {self.map_seeds!r}: the environment "
+                                 f"draws its maps from one of them (give map_seeds=() with map_path)")
+            if not Path(self.map_path).is_file():
+                raise ValueError(f"map_path: no such map image {self.map_path!r}")
 
 
 _MAPS: dict = {}
@@ -190,9 +203,9 @@ class MagneticParticleEnv(gym.Env):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
-        self._maps = list(maps) if maps else None
-        if self._maps is not None and not all(isinstance(m, Map) for m in self._maps):
-            raise TypeError("maps must be a list of cmlearn.rl.maps.Map")
+        self._maps = None if maps is None else list(maps)
+        if self._maps is not None and not (self._maps and all(isinstance(m, Map) for m in self._maps)):
+            raise TypeError(f"maps must be a non-empty list of cmlearn.rl.maps.Map (None: the config's), got {maps!r}")
         n = cfg.camera.size
         self.observation_space = spaces.Box(0, 255, (2, n, n), np.uint8)
         self.action_space = spaces.Discrete(4)
@@ -228,6 +241,9 @@ class MagneticParticleEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         options = dict(options or {})
+        unknown = sorted(set(options) - {"map_index", "start", "goal"})
+        if unknown:  # a misspelt key drew a random map and goal
+            raise ValueError(f"options: unknown key(s) {unknown}; valid: ['goal', 'map_index', 'start']")
         rng = self.np_random
         idx = options.get("map_index", int(rng.integers(self.map_count())))
         if not (_count(idx) and idx < self.map_count()):

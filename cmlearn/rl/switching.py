@@ -52,7 +52,6 @@ class SwitchingConfig:
     switch_distance: float = 0.05
     release_distance: float = 0.02
     max_speed: float = TOOL_SPEED
-    max_steps: int = 150
 
     def __post_init__(self):
         for name in ("k1", "switch_distance", "release_distance", "max_speed"):
@@ -62,8 +61,6 @@ class SwitchingConfig:
         if self.release_distance > self.switch_distance:
             raise ValueError(f"release_distance={self.release_distance} must be <= switch_distance="
                              f"{self.switch_distance}")
-        if int(self.max_steps) < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
 
 
 class SwitchingLaw:

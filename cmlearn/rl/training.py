@@ -166,8 +166,10 @@ def _env_kwargs(cfg: AgentTrainConfig, maps) -> dict:
 
 def evaluate_agent(agent: IQNAgent, env_kwargs: dict, episodes: int, seed: int = 10_000) -> dict:
     """Greedy episodes of the switching controller with ``agent`` as Sub-controller 2."""
-    from .env import MagneticParticleEnv
+    from .env import MagneticParticleEnv, _count
     from .switching import run_episode
+    if not (_count(episodes) and episodes >= 1):  # none gave NaN metrics
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
     env = MagneticParticleEnv(**env_kwargs)
     try:
         res = [run_episode(env, agent, seed=seed + i) for i in range(episodes)]
