@@ -58,6 +58,11 @@ class Args:
 
 
 CONTROLLERS = ("iqn", "iqn_greedy", "attractor", "errt", "memory", "random", "teacher")
+#: lower bounds of the number options (at least, above), checked as parsed: they failed hours into a run, or not at all
+BOUNDS = {"episodes": (1, None), "threads": (1, None), "seed": (0, None), "train_maps": (1, None),
+          "unseen_maps": (1, None), "unseen_offset": (0, None), "plots": (0, None), "agent_waypoints": (-1, None),
+          "disturbance_probability": (0, None), "disturbance_min": (None, 0), "disturbance_max": (None, 0),
+          "switch_distance": (None, 0)}
 
 
 def parse(argv=None) -> Args:
@@ -67,7 +72,8 @@ def parse(argv=None) -> Args:
         if f.type == "bool":
             ap.add_argument(flag, dest=f.name, action="store_true")
         else:
-            kind = {"int": bounded(int), "float": bounded(float)}.get(f.type, str)
+            kind = {"int": int, "float": float}.get(f.type)
+            kind = bounded(kind, *BOUNDS[f.name]) if kind else str
             if f.name in ("out", "report"):  # the results' folder, the table's copy
                 kind = writable(folder=f.name == "out")
             ap.add_argument(flag, dest=f.name, type=kind, default=f.default)
@@ -75,12 +81,12 @@ def parse(argv=None) -> Args:
     if a.quick:
         a.episodes, a.train_maps, a.unseen_maps, a.plots = min(a.episodes, 4), min(a.train_maps, 2), \
             min(a.unseen_maps, 2), min(a.plots, 1)
-    if a.episodes < 1:
-        raise SystemExit(f"--episodes must be >= 1, got {a.episodes}")
-    if a.unseen_offset < 0:
-        raise SystemExit(f"--unseen-offset must be >= 0, got {a.unseen_offset}")
-    if a.plots < 0:  # a negative count sliced the episodes shown from the end ([:-1]: all but one)
-        raise SystemExit(f"--plots must be >= 0, got {a.plots}")
+    import cmlearn.rl as rl
+    try:  # the disturbed settings' and the switching law's checks, before the undisturbed settings' episodes
+        rl.DisturbanceConfig(probability=a.disturbance_probability, magnitude=(a.disturbance_min, a.disturbance_max))
+        rl.SwitchingConfig(switch_distance=a.switch_distance)
+    except ValueError as e:
+        ap.error(f"--disturbance-probability, --disturbance-min/max or --switch-distance: {e}")
     names = [c.strip() for c in a.controllers.split(",") if c.strip()]
     for name in names:  # checked before the first controller's hours of episodes, not when its turn comes
         if name not in CONTROLLERS:

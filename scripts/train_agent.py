@@ -28,6 +28,11 @@ from cmlearn.rl.agent import load_agent, save_agent
 from cmlearn.rl.training import AgentTrainConfig, config_from_args, train_agent
 
 
+#: --quick: the smoke-test budget (each at most the option's default)
+QUICK = dict(total_frames=1_024, init_random_frames=512, eval_every=512, eval_episodes=2, checkpoint_every=512,
+             buffer_size=4_096, train_maps=1, max_steps=30, demo_episodes=4, pretrain_updates=20)
+
+
 def parse(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     for f in fields(AgentTrainConfig):
@@ -46,12 +51,13 @@ def parse(argv=None):
     ap.add_argument("--ship-best", action="store_true",
                     help="with --ship: copy the agent of the best periodic evaluation instead of the final one")
     ns = ap.parse_args(argv)
+    if ns.quick:  # the smoke-test budget for each option not given on the command line (it overrode given ones)
+        ap.set_defaults(**{k: min(v, ap.get_default(k)) for k, v in QUICK.items()})
+        ns = ap.parse_args(argv)
     if ns.no_progress:
         ns.progress = False
-    if ns.quick:
-        ns.total_frames, ns.init_random_frames, ns.eval_every, ns.eval_episodes = 1_024, 512, 512, 2
-        ns.checkpoint_every, ns.buffer_size, ns.train_maps, ns.max_steps = 512, 4_096, 1, 30
-        ns.demo_episodes, ns.pretrain_updates = min(ns.demo_episodes, 4), min(ns.pretrain_updates, 20)
+    if ns.ship_best and not ns.ship:
+        ap.error("--ship-best chooses the agent --ship copies, and no --ship is given")
     try:  # the config's checks (ranges, --network fields) as a usage error, not a traceback
         config_from_args(ns)
     except (TypeError, ValueError) as e:

@@ -81,7 +81,7 @@ def test_eval_controllers_checks_controllers_and_agent_before_running(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "CMLEARN_CACHE": str(tmp_path / "cache")}
     for controllers, extra, message in (("attractor,bogus", [], "unknown controller 'bogus'"),
                                         ("attractor,iqn", [], "--agent: missing.pt: no such agent checkpoint"),
-                                        ("attractor", ["--plots", "-1"], "--plots must be >= 0, got -1")):
+                                        ("attractor", ["--plots", "-1"], "argument --plots: must be >= 0, got '-1'")):
         out = subprocess.run([sys.executable, str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1",
                               "--train-maps", "1", "--unseen-maps", "1", "--controllers", controllers,
                               "--agent", "missing.pt", "--out", "ev", *extra],

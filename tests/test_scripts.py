@@ -1350,3 +1350,22 @@ def test_bench_and_report_arguments_that_cannot_run_are_usage_errors(script, arg
         load_script(script).main(argv)
     err = capsys.readouterr().err
     assert e.value.code == 2 and msg in err, err[-500:]
+
+
+def test_agent_scripts_refuse_numbers_that_failed_late_and_options_given_for_nothing(capsys):
+    """eval_controllers took --threads 0, --seed -1 and --unseen-maps 0 and failed once their turn came (a
+    disturbance probability of 2 after both undisturbed settings' episodes), and --agent-waypoints -5 as -1;
+    train_agent's --quick overrode the budget options given beside it, and --ship-best without --ship did nothing."""
+    base = ["--controllers", "attractor"]
+    for extra, msg in ((["--threads", "0"], "argument --threads: must be >= 1, got '0'"),
+                       (["--seed", "-1"], "argument --seed: must be >= 0, got '-1'"),
+                       (["--unseen-maps", "0"], "argument --unseen-maps: must be >= 1, got '0'"),
+                       (["--agent-waypoints", "-5"], "argument --agent-waypoints: must be >= -1, got '-5'"),
+                       (["--disturbance-min", "0"], "argument --disturbance-min: must be > 0, got '0'"),
+                       (["--disturbance-probability", "2"], "probability must be in [0, 1], got 2.0"),
+                       (["--switch-distance", "0.01"], "release_distance=0.02 must be <= switch_distance=0.01")):
+        parse_fails("eval_controllers", base + extra, msg, capsys)
+    parse_fails("train_agent", ["--ship-best"], "--ship-best chooses the agent --ship copies, and no --ship", capsys)
+    quick = load_script("train_agent").parse(["--quick", "--total-frames", "2048", "--max-steps", "40"])
+    assert (quick.total_frames, quick.max_steps, quick.eval_episodes, quick.buffer_size) == (2048, 40, 2, 4096)
+
