@@ -18,7 +18,8 @@ from cmlearn.args import readable, writable
 def main(argv=None):
     root = Path(__file__).resolve().parents[1]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--agent", type=readable(), default=str(root / "checkpoints" / "iqn_agent.json"))
+    ap.add_argument("--agent", type=readable(), default=str(root / "checkpoints" / "iqn_agent.json"),
+                    help="the agent's metadata (<name>.json), or its checkpoint with the metadata beside it")
     ap.add_argument("--out", type=writable(), default=str(root / "docs" / "agent_training"))
     a = ap.parse_args(argv)
     import matplotlib
@@ -26,7 +27,11 @@ def main(argv=None):
     import matplotlib.pyplot as plt
 
     from cmlearn.io import atomic_write, write_text_atomic
-    meta = json.loads(Path(a.agent).read_text())
+    path = Path(a.agent) if a.agent.endswith(".json") else Path(a.agent).with_suffix(".json")
+    try:  # the checkpoint itself gave a UnicodeDecodeError traceback
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise SystemExit(f"--agent: cannot read the agent's metadata {str(path)!r} ({type(e).__name__}: {e})")
     run = meta.get("run") or {}  # shipped with --ship-best: the whole run's evaluations are under "run"
     ev = run.get("evaluations") or meta.get("evaluations") or []
     if not ev:
@@ -42,7 +47,7 @@ def main(argv=None):
     fig.tight_layout()
     out = Path(a.out)
     atomic_write(out.with_suffix(".png"), lambda f: fig.savefig(f, format="png", dpi=110))
-    lines = [f"Training of `{Path(a.agent).with_suffix('.pt').name}`: `{meta.get('command', '')}`; "
+    lines = [f"Training of `{path.with_suffix('.pt').name}`: `{meta.get('command', '')}`; "
              f"{meta.get('frames')} frames, {meta.get('updates')} updates, {meta.get('wall_s')} s wall "
              f"({meta.get('threads')} thread(s), {meta.get('workers')} collector process(es) x "
              f"{meta.get('num_envs')} envs)." + (

@@ -1369,3 +1369,13 @@ def test_agent_scripts_refuse_numbers_that_failed_late_and_options_given_for_not
     quick = load_script("train_agent").parse(["--quick", "--total-frames", "2048", "--max-steps", "40"])
     assert (quick.total_frames, quick.max_steps, quick.eval_episodes, quick.buffer_size) == (2048, 40, 2, 4096)
 
+
+
+def test_report_agent_reads_the_metadata_beside_a_checkpoint_and_names_a_bad_file(tmp_path, capsys):
+    """``--agent checkpoints/iqn_agent.pt`` (the checkpoint, not its .json) ended in a UnicodeDecodeError traceback."""
+    report = load_script("report_agent")
+    report.main(["--agent", str(ROOT / "checkpoints" / "iqn_agent.pt"), "--out", str(tmp_path / "rep")])
+    assert "Training of `iqn_agent.pt`" in (tmp_path / "rep.md").read_text()
+    (tmp_path / "bad.json").write_text("{bad")
+    with pytest.raises(SystemExit, match=r"--agent: cannot read the agent's metadata .*bad.json' \(JSONDecodeError"):
+        report.main(["--agent", str(tmp_path / "bad.json"), "--out", str(tmp_path / "rep2")])
