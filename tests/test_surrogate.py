@@ -90,6 +90,12 @@ def test_dataset_is_what_the_physics_gives_and_is_validated(tiny, tmp_path):
     torch.save({"positions": pos[:, :-1], "wrench": W[:, :-1], "meta": {**meta, "duration": 0.3}}, tmp_path / "short.pt")
     with pytest.raises(ValueError, match=r"positions has shape \(3, 30, "):
         load_dataset(tmp_path / "short.pt")
+    # metadata without its keys, or not a dict: a bare KeyError 'data_hash' or TypeError came out
+    nohash = {k: v for k, v in tiny["meta"].items() if k != "data_hash"}
+    for meta, msg in ((nohash, r"its meta lacks \['data_hash'\]"), ([1, 2], "its meta lacks everything")):
+        torch.save({**tiny, "meta": meta}, tmp_path / "nometa.pt")
+        with pytest.raises(ValueError, match=rf"nometa.pt: not a cmlearn dataset \({msg}"):
+            load_dataset(tmp_path / "nometa.pt")
 
 
 def test_training_pulses_trace_as_the_eager_batch(tiny):
@@ -216,6 +222,8 @@ def test_windows_and_splits_refuse_ranges_outside_the_data():
     for ranges, kw, msg in (([(0, 0, 40)], {}, r"ranges \[\(0, 0, 40\)\] lie outside the data"),
                             ([(2, 0, 19)], {}, r"ranges \[\(2, 0, 19\)\] lie outside the data"),
                             ([(0, 0, 19)], {"horizon": 0}, "horizon >= 1, got eta 2 and horizon 0"),
+                            ([(0, 0, 19)], {"stride": 0}, "stride must be an integer >= 1, got 0"),  # range()'s error
+                            ([(0, 0, 19)], {"stride": -1}, "stride must be an integer >= 1, got -1"),
                             ([(0, 0, 19)], {"wrench": wr[:, :10]}, r"wrench \(2, 10, 3, 3\) must hold the T - 1")):
         args = {"eta": 2, "horizon": 4, "wrench": wr, **kw}
         with pytest.raises(ValueError, match=msg):

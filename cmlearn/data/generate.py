@@ -230,6 +230,10 @@ def load_dataset(path: str | Path, task: str | None = None) -> dict:
         raise ValueError(f"{path}: not a readable cmlearn dataset ({type(e).__name__}: {e})") from None
     if not isinstance(d, dict) or not {"positions", "wrench", "meta"} <= set(d):
         raise ValueError(f"{path}: not a cmlearn dataset (missing positions/wrench/meta)")
+    keys = {"task", "data_hash", "duration", "delta", "n_variants", "tracked", "wrench_nodes"}
+    if not isinstance(d["meta"], dict) or not keys <= set(d["meta"]):  # a KeyError or TypeError came out of the checks
+        raise ValueError(f"{path}: not a cmlearn dataset (its meta lacks "
+                         f"{sorted(keys - set(d['meta'])) if isinstance(d['meta'], dict) else 'everything'})")
     if task is not None and d["meta"].get("task") != task:
         raise ValueError(f"{path}: dataset is for task {d['meta'].get('task')!r}, not {task!r}")
     if data_hash(d["positions"], d["wrench"]) != d["meta"]["data_hash"]:

@@ -66,6 +66,8 @@ class RolloutWindows(Dataset):
             raise ValueError("time_reversal: a closed-loop wrench model's inputs are not reversible windows")
         if eta < 0 or horizon < 1:
             raise ValueError(f"eta must be >= 0 and horizon >= 1, got eta {eta} and horizon {horizon}")
+        if not (isinstance(stride, int) and stride >= 1):
+            raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
         V, T = positions.shape[:2]
         if tuple(wrench.shape[:2]) != (V, T - 1):
             raise ValueError(f"wrench {tuple(wrench.shape)} must hold the T - 1 = {T - 1} intervals of each of the "
