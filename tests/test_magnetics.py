@@ -269,12 +269,29 @@ def test_bad_input_is_rejected_with_the_parameter_name():
         CuboidMagnet(dimensions=(0.02, 0.02, 0.02)).field_model(8).field(torch.tensor([[0.005, 0.0, 0.0]], dtype=D))
     with pytest.raises(ValueError, match="volume"):
         moment_from_remanence(1.3, 0.0)
-    with pytest.raises(ValueError, match=r"B must be a finite \(\.\.\., 3\) field in tesla, got shape \(2,\)$"):
+    with pytest.raises(ValueError, match=r"B must be a finite field in tesla of shape \(3,\).* got shape \(2,\)$"):
         UniformField([0.0, 1.0])
     with pytest.raises(ValueError, match=r"got shape \(3,\) with non-finite values"):  # it named only the shape
         UniformField([0.0, float("nan"), 0.0])
     with pytest.raises(ValueError, match="count"):
         CuboidMagnet(dimensions=(0.01, 0.01, 0.01)).dipoles(0)
+
+
+def test_uniform_field_batches_over_members_and_refuses_integer_points():
+    """Integer field points gave B = 0 (the field cast to int64); a (V, 3) B lined its batch up with the
+    field points. B (V, 1, 3) gives each member its own field at every point."""
+    B = torch.tensor([[[0.0, 0.01, 0.0]], [[0.02, 0.0, 0.0]]], dtype=D)
+    out = UniformField(B).field(torch.zeros(2, 4, 3, dtype=D))
+    assert out.shape == (2, 4, 3) and torch.equal(out, B.expand(2, 4, 3))
+    with pytest.raises(ValueError, match=r"does not broadcast against points of shape \(3, 4, 3\)"):
+        UniformField(B).field(torch.zeros(3, 4, 3, dtype=D))
+    with pytest.raises(ValueError, match=r"got shape \(2, 3\)"):  # a function of time is checked as it is called
+        UniformField(lambda t: B[:, 0])(0.0, torch.zeros(2, 2, 3, dtype=D))
+    for model in (UniformField((0.0, 0.01, 0.0)), DipoleSet([[0, 0, 0]], [[0.0, 0.0, 1.0]])):
+        with pytest.raises(TypeError, match="points must be a floating-point tensor, got torch.int64"):
+            model.field(torch.tensor([[0, 0, 1]]))
+    # whole-number dipole positions written as integers are coordinates, not an error
+    assert DipoleSet([[0, 0, 0]], [[0.0, 0.0, 1.0]]).positions.is_floating_point()
 
 
 def test_dipole_set_rejects_a_non_finite_softening():

@@ -23,6 +23,8 @@ __all__ = ["FieldModel", "Superposition", "TimeVarying", "UniformField"]
 def check_points(points: Tensor, name: str = "points") -> Tensor:
     if not isinstance(points, Tensor):
         raise TypeError(f"{name} must be a tensor (..., 3), got {type(points).__name__}")
+    if not points.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {points.dtype}")
     if points.shape[-1:] != (3,):
         raise ValueError(f"{name} must have shape (..., 3), got {tuple(points.shape)}")
     if not bool(torch.isfinite(points).all()):
@@ -105,24 +107,40 @@ class TimeVarying:
         return self.make(t).force_torque(positions, moments)
 
 
+def _check_uniform(B, finite: bool = True) -> Tensor:
+    """``B`` as a tensor of shape (3,) or (..., 1, 3); ``finite=False`` (a field evaluated at each step)
+    checks the shape alone, which keeps a compiled step in one graph."""
+    B = torch.as_tensor(B)
+    bad = not bool(torch.isfinite(B).all()) if finite else False
+    if B.shape[-1:] != (3,) or (B.dim() > 1 and B.shape[-2] != 1) or bad:
+        raise ValueError(f"B must be a finite field in tesla of shape (3,) or, one per batch member, (..., 1, 3) "
+                         f"(the 1 spans the field points), got shape {tuple(B.shape)}"
+                         f"{' with non-finite values' if bad else ''}")
+    return B
+
+
 class UniformField(FieldModel):
     """A spatially uniform field ``B`` (3,) in T, or ``B(t)`` a function of time (e.g. the ideal field at
-    the centre of Helmholtz coils). As a solver hook it returns ``B`` alone: no gradient, no force."""
+    the centre of Helmholtz coils). As a solver hook it returns ``B`` alone: no gradient, no force.
+
+    A batch of fields is ``B`` (..., 1, 3): it broadcasts against field points (..., P, 3), so each
+    batch member's field acts on all its points. A (V, 3) ``B`` is refused, since it would line the
+    batch up with the points."""
 
     def __init__(self, B):
-        if not callable(B):
-            B = torch.as_tensor(B)
-            if B.shape[-1:] != (3,) or not bool(torch.isfinite(B).all()):
-                raise ValueError(f"B must be a finite (..., 3) field in tesla, got shape {tuple(B.shape)}"
-                                 f"{'' if bool(torch.isfinite(B).all()) else ' with non-finite values'}")
-        self.B = B
+        self.B = B if callable(B) else _check_uniform(B)
 
     def _at(self, t, points: Tensor) -> Tensor:
         if callable(self.B) and t is None:
             raise ValueError("UniformField: B is a function of time; evaluate it at a time t as a solver hook, "
                              "model(t, points) or model.wrench(t, points, moments)")
-        B = self.B(t) if callable(self.B) else self.B
-        return torch.as_tensor(B, dtype=points.dtype, device=points.device).expand(points.shape)
+        B = _check_uniform(self.B(t), finite=False) if callable(self.B) else self.B
+        B = B.to(dtype=points.dtype, device=points.device)
+        try:
+            return B.expand(torch.broadcast_shapes(B.shape, points.shape))
+        except RuntimeError:
+            raise ValueError(f"UniformField: B of shape {tuple(B.shape)} does not broadcast against "
+                             f"points of shape {tuple(points.shape)}") from None
 
     def field_and_gradient(self, points):
         B = self._at(None, check_points(points))

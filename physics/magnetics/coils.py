@@ -159,8 +159,6 @@ def loop_field_per_amp(points: Tensor, centres: Tensor, axes: Tensor, radii: Ten
     B (..., P, C, 3), dB (..., P, C, 3, 3).
     """
     check_points(points)
-    if not points.is_floating_point():
-        raise TypeError(f"points must be a floating-point tensor, got {points.dtype}")
     kw = dict(dtype=points.dtype, device=points.device)
     c, n, a = (torch.as_tensor(x, **kw) for x in (centres, axes, radii))
     if not bool((torch.isfinite(a) & (a > 0)).all() & (n.norm(dim=-1) > 0).all() & torch.isfinite(c).all()):

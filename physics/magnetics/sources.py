@@ -33,7 +33,10 @@ class DipoleSet(FieldModel):
     """
 
     def __init__(self, positions: Tensor, moments: Tensor, *, softening: float = 0.0, min_distance: float = 0.0):
-        positions = check_points(torch.as_tensor(positions), "positions")
+        positions = torch.as_tensor(positions)
+        if not positions.is_floating_point():  # whole-number coordinates written as integers
+            positions = positions.to(torch.get_default_dtype())
+        positions = check_points(positions, "positions")
         moments = torch.as_tensor(moments, dtype=positions.dtype, device=positions.device)
         if moments.shape[-1:] != (3,) or moments.shape[-2:-1] != positions.shape[-2:-1]:
             raise ValueError(f"moments must have shape (..., S, 3) matching positions {tuple(positions.shape)}, "
