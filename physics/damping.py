@@ -66,6 +66,12 @@ class DistributedDampingFilter:
         kw = dict(dtype=self.model.dtype, device=self.model.device)
         self._R = torch.as_tensor(self.R, **kw)
         self._W = torch.as_tensor(self.W, **kw)
+        for name, w in (("R", self._R), ("W", self._W)):
+            if w.shape not in ((), (3,)):
+                raise ValueError(f"DistributedDampingFilter.{name} must be a scalar or a (3,) diagonal, "
+                                 f"got shape {tuple(w.shape)}")
+            if not bool(torch.isfinite(w).all()):
+                raise ValueError(f"DistributedDampingFilter.{name} must be finite, got {w.tolist()}")
         if bool((self._R <= 0).any()) or bool((self._W < 0).any()):
             raise ValueError("DistributedDampingFilter: R must be positive definite and W positive semi-definite")
 

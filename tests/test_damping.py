@@ -78,6 +78,12 @@ def test_filter_input_validation(reference):
         filt.run(traj.p[:2], traj.R[1])
     with pytest.raises(ValueError, match="record_every must be an integer >= 1, got 0"):  # ZeroDivisionError
         filt.run(traj.p[:4], traj.R[1], record_every=0)
+    # a NaN weight estimated K = 0 at every node (no damping found) and a (5,) weight broadcast over nodes
+    for bad, match in ((dict(R=float("nan")), "R must be finite, got nan"), (dict(W=float("inf")), "W must be finite"),
+                       (dict(R=torch.ones(5)), r"R must be a scalar or a \(3,\) diagonal, got shape \(5,\)"),
+                       (dict(W=torch.zeros(2, 3)), r"W must be a scalar or a \(3,\) diagonal")):
+        with pytest.raises(ValueError, match=match):
+            DistributedDampingFilter(model, **bad)
 
 
 def test_zero_regularisation_gives_no_nan(reference):
