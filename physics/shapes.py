@@ -20,6 +20,7 @@ remains where the curvature changes fast).
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Sequence
 
 import numpy as np
@@ -44,6 +45,15 @@ def strain_free_positions(R: Tensor, lengths: Sequence[float], origin=(0.0, 0.0,
     return torch.cat((p0, p0 + d.cumsum(0)))
 
 
+def _check_node_s(node_s, where: str) -> np.ndarray:
+    """Node arclengths as a float64 array: 1-D, at least two, finite, from 0, strictly increasing."""
+    s = np.asarray(node_s, dtype=np.float64)
+    if s.ndim != 1 or s.size < 2 or not np.isfinite(s).all() or s[0] != 0 or not (np.diff(s) > 0).all():
+        raise ValueError(f"{where}: node_s must be finite node arclengths (m) from 0, strictly increasing, "
+                         f"at least two, got {s.tolist()}")
+    return s
+
+
 def _tip_load_profile(s: np.ndarray, L: float) -> np.ndarray:
     """Rotation-angle profile g(s) of a tip-loaded cantilever, g(0) = 0, g(L) = 1."""
     x = s / L
@@ -58,8 +68,10 @@ def bent_cantilever(node_s: Sequence[float], tip_rotation: Sequence[float]) -> t
     ``R(s) = exp(g(s) Theta^)`` with ``g(s) = 2 s/L - (s/L)^2``; for a rotation axis normal to E3
     this is planar bending in the plane normal to the axis. Positions: :func:`strain_free_positions`.
     """
-    s = np.asarray(node_s, dtype=np.float64)
+    s = _check_node_s(node_s, "bent_cantilever")
     th = np.asarray(tip_rotation, dtype=np.float64)
+    if th.shape != (3,) or not np.isfinite(th).all():
+        raise ValueError(f"bent_cantilever: tip_rotation must be a finite rotation vector (3,) (rad), got {th.tolist()}")
     w = torch.tensor(_tip_load_profile(s, float(s[-1]))[:, None] * th[None, :], dtype=torch.float64)
     R = so3_exp(w)
     return strain_free_positions(R, np.diff(s)), R
@@ -69,8 +81,10 @@ def cantilever_rotation_for_offset(node_s: Sequence[float], offset: Sequence[flo
     """Tip rotation vector that makes :func:`bent_cantilever` put the tip node at lateral ``offset``
     (dx, dy) (m) from the straight axis (solved exactly, not by the linear ``theta = 3 d / 2L``)."""
     u = np.array([offset[0], offset[1], 0.0], dtype=np.float64)
+    if not np.isfinite(u).all():
+        raise ValueError(f"cantilever_rotation_for_offset: offset must be finite (m), got {list(offset)}")
     d = float(np.linalg.norm(u))
-    length = float(node_s[-1])
+    length = float(_check_node_s(node_s, "cantilever_rotation_for_offset")[-1])
     if d == 0:
         return np.zeros(3)
     if d >= 0.9 * length:
@@ -86,9 +100,22 @@ def cantilever_rotation_for_offset(node_s: Sequence[float], offset: Sequence[flo
 
 
 def planar_frames(tangent: np.ndarray, normal: Sequence[float] = (0.0, 0.0, 1.0)) -> Tensor:
-    """Frames (n, 3, 3) with E3 = unit tangent, E2 = plane normal, E1 = E2 x E3."""
-    t = tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
-    e2 = np.broadcast_to(np.asarray(normal, dtype=np.float64), t.shape)
+    """Frames (n, 3, 3) with E3 = unit tangent, E2 = unit plane normal, E1 = E2 x E3; the tangents must
+    lie in the plane (normal to ``normal``)."""
+    tangent = np.asarray(tangent, dtype=np.float64)
+    norm = np.linalg.norm(tangent, axis=-1, keepdims=True)
+    n = np.asarray(normal, dtype=np.float64)
+    if n.shape != (3,) or not np.isfinite(n).all() or np.linalg.norm(n) == 0:
+        raise ValueError(f"planar_frames: normal must be a finite non-zero (3,) vector, got {n.tolist()}")
+    if tangent.shape[-1:] != (3,) or not np.isfinite(tangent).all() or not (norm > 0).all():
+        raise ValueError("planar_frames: tangent must be finite non-zero (..., 3) vectors")
+    t = tangent / norm
+    n = n / np.linalg.norm(n)
+    off = np.abs(t @ n)
+    if off.size and off.max() > 1e-9:  # the frame would not be a rotation (det 0 for a tangent along the normal)
+        raise ValueError(f"planar_frames: the tangents must lie in the plane normal to {n.tolist()}; "
+                         f"|tangent . normal| reaches {off.max():.3g}")
+    e2 = np.broadcast_to(n, t.shape)
     e1 = np.cross(e2, t)
     return torch.tensor(np.stack((e1, e2, t), -1), dtype=torch.float64)
 
@@ -156,6 +183,8 @@ def ellipse_loop(n_elements: int, width: float, height: float, element_length: f
     its ``n_elements`` chords add up to less than that fraction of the ellipse's perimeter. A mesh whose
     equal elements cannot close the loop at all is a ``ValueError``.
     """
+    if isinstance(n_elements, bool) or not isinstance(n_elements, numbers.Integral) or n_elements < 3:
+        raise ValueError(f"ellipse_loop: n_elements must be an integer >= 3, got {n_elements!r}")
     if not all(math.isfinite(x) and x > 0 for x in (width, height)):
         raise ValueError(f"ellipse_loop: width and height must be finite and > 0 (m), got {width!r}, {height!r}")
     if element_length is not None and not (math.isfinite(element_length) and element_length > 0):
@@ -195,7 +224,7 @@ def circular_arc(node_s: Sequence[float], turning_angle: float) -> tuple[Tensor,
     elements over a half turn, which makes the clamped arc an exact discrete equilibrium)."""
     if not math.isfinite(turning_angle):
         raise ValueError(f"circular_arc: turning_angle must be finite (rad), got {turning_angle!r}")
-    s = np.asarray(node_s, dtype=np.float64)
+    s = _check_node_s(node_s, "circular_arc")
     phi = np.zeros_like(s) if turning_angle == 0 else s / (s[-1] / turning_angle)  # 0: the straight rod
     t = np.stack((np.sin(phi), np.cos(phi), np.zeros_like(phi)), -1)
     R = planar_frames(t)

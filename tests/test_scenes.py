@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -477,6 +478,33 @@ def test_ellipse_loop_coarse_meshes_close_or_raise():
         ellipse_loop(20, 0.0, 0.1)
     with pytest.raises(ValueError, match="element_length"):
         ellipse_loop(20, 0.1, 0.1, element_length=-0.01)
+    for bad in (0, 2.5, True):  # a ZeroDivisionError, a TypeError from range(), one element
+        with pytest.raises(ValueError, match="n_elements must be an integer >= 3"):
+            ellipse_loop(bad, 0.1, 0.1)
+
+
+def test_shape_builders_refuse_what_gave_nan_or_singular_frames():
+    """A NaN tip rotation or arclengths that do not increase from 0 gave NaN or folded rods; a tangent
+    along the plane normal gave a frame of determinant 0."""
+    from physics.shapes import bent_cantilever, cantilever_rotation_for_offset, circular_arc, planar_frames
+    s = np.linspace(0.0, 0.1, 5)
+    p, R = bent_cantilever(s, (0.1, 0.0, 0.0))
+    assert torch.allclose(torch.linalg.det(R), torch.ones(5, dtype=torch.float64), atol=1e-12)
+    with pytest.raises(ValueError, match=r"tip_rotation must be a finite rotation vector \(3,\)"):
+        bent_cantilever(s, (float("nan"), 0.0, 0.0))
+    for bad in (s[::-1], [0.0, 0.05, 0.05, 0.1], [0.0, float("nan"), 0.1], [0.0], [0.01, 0.05, 0.1]):
+        for build in (lambda x: bent_cantilever(x, (0.1, 0.0, 0.0)), lambda x: circular_arc(x, 1.0),
+                      lambda x: cantilever_rotation_for_offset(x, (0.01, 0.0))):
+            with pytest.raises(ValueError, match="node_s must be finite node arclengths"):
+                build(bad)
+    with pytest.raises(ValueError, match="offset must be finite"):
+        cantilever_rotation_for_offset(s, (float("nan"), 0.0))
+    with pytest.raises(ValueError, match=r"tangents must lie in the plane .* reaches 1"):
+        planar_frames(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match="normal must be a finite non-zero"):
+        planar_frames(np.array([[1.0, 0.0, 0.0]]), normal=(0.0, 0.0, 0.0))
+    F = planar_frames(np.array([[2.0, 0.0, 0.0], [0.0, 3.0, 0.0]]), normal=(0.0, 0.0, 5.0))  # normalised
+    assert torch.allclose(torch.linalg.det(F), torch.ones(2, dtype=torch.float64), atol=1e-15)
 
 
 def test_min_jerk_durations_must_be_sequences():
