@@ -243,8 +243,12 @@ class LGVI:
         if float(orth) > tol or bool((torch.linalg.det(R) <= 0).any()):
             raise ValueError(f"initial_state: R must be proper rotations (max |R^T R - I| = {float(orth):.2e})")
         p = torch.broadcast_tensors(p[..., None], R)[0][..., 0]
+        for name, x in (("v", v), ("omega", omega)):
+            if x is not None and not bool(torch.isfinite(torch.as_tensor(x, **kw)).all()):
+                raise ValueError(f"initial_state: {name} must be finite")
         v = torch.zeros_like(p) if v is None else torch.as_tensor(v, **kw).expand_as(p).clone()
         pi = torch.zeros_like(p) if omega is None else prm.inertia * torch.as_tensor(omega, **kw).expand_as(p)
+        self._check_loads_at(float(t))  # the half kick below applies them
         # the state holds v^{-1/2} and the momentum before the first torque kick: step back half a
         # kick from the given velocities (velocity-Verlet start, keeps the scheme second order)
         state = LGVIState(float(t), p.contiguous(), (v * self._free).contiguous(), R.contiguous(),
@@ -449,13 +453,26 @@ class LGVI:
         return fn
 
     def _check_node_load(self, name: str, value, t: float | None = None) -> None:
-        """ValueError unless a node force / torque is (..., n, 3) (a (3,) vector would act on every node)."""
+        """ValueError unless a node force / torque is (..., n, 3) (a (3,) vector would act on every node) and
+        finite (a NaN load would be reported as a non-finite state), naming the node."""
         n = self.params.n_nodes
-        shape = tuple(torch.as_tensor(value).shape)
+        value = torch.as_tensor(value)
+        shape = tuple(value.shape)
+        at = "" if t is None else f" (the value of its function at t={t:.6g} s)"
         if shape[-2:] != (n, 3):
-            at = "" if t is None else f" (the value of its function at t={t:.6g} s)"
             raise ValueError(f"Loads.{name}{at} must be (..., {n}, 3): one world-frame vector per node of this rod "
                              f"(zero where none acts), got shape {shape}")
+        bad = ~torch.isfinite(value).all(-1)
+        if bool(bad.any()):
+            raise ValueError(f"Loads.{name}{at} is not finite at node {int(bad.nonzero()[0, -1])}")
+
+    def _check_loads_at(self, t: float) -> None:
+        """:meth:`_check_node_load` on each load given as a function of time, at time ``t``."""
+        for name in ("force", "torque"):
+            load = getattr(self.loads, name)
+            value = load(self._tensor_time(t)) if callable(load) else None
+            if value is not None:  # a function may give None: no load at that time
+                self._check_node_load(name, value, t)
 
     def check_state(self, state: LGVIState, where: str = "simulate", finite: bool = True) -> None:
         """ValueError naming the first field of ``state`` that is not this integrator's: shapes (..., n, 3) and
@@ -486,11 +503,7 @@ class LGVI:
         would cost it about a tenth of a call of 40 steps: a non-finite start fails its first block, replayed
         eagerly to name the step and node.)"""
         self.check_state(state)
-        for name in ("force", "torque"):
-            load = getattr(self.loads, name)
-            value = load(self._tensor_time(state.t)) if callable(load) else None
-            if value is not None:  # a function may give None: no load at that time
-                self._check_node_load(name, value, state.t)
+        self._check_loads_at(state.t)
 
     def _residual_limit(self) -> float:
         """Largest Newton residual accepted before a step counts as not converged."""

@@ -15,6 +15,8 @@ A scene started at the result stays at rest up to round-off.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import scipy.optimize
 import torch
@@ -29,6 +31,31 @@ from .rod import Rod
 __all__ = ["static_equilibrium"]
 
 
+def _check_inputs(n: int, p0, R0, gravity, field, tol, rounds) -> None:
+    """ValueError naming the first argument of :func:`static_equilibrium` that cannot be solved for."""
+    def bad(name, msg):
+        raise ValueError(f"static_equilibrium: {name} must be {msg}")
+    if not torch.is_tensor(p0) or p0.shape != (n, 3) or not bool(torch.isfinite(p0).all()):
+        bad("p0", f"finite node positions ({n}, 3) for this rod, got "
+                  f"{tuple(p0.shape) if torch.is_tensor(p0) else type(p0).__name__}")
+    if not torch.is_tensor(R0) or R0.shape != (n, 3, 3) or not bool(torch.isfinite(R0).all()):
+        bad("R0", f"finite node rotations ({n}, 3, 3) for this rod, got "
+                  f"{tuple(R0.shape) if torch.is_tensor(R0) else type(R0).__name__}")
+    R = R0.to(torch.float64)
+    orth = float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=torch.float64)).abs().amax())
+    if orth > (1e-9 if R0.dtype == torch.float64 else 1e-5) or bool((torch.linalg.det(R) <= 0).any()):
+        bad("R0", f"proper rotations (max |R^T R - I| = {orth:.2e})")
+    for name, x, unit in (("gravity", gravity, "m/s^2"), ("field", field, "T")):
+        if x is not None:
+            x = torch.as_tensor(x, dtype=torch.float64)
+            if x.shape != (3,) or not bool(torch.isfinite(x).all()):
+                bad(name, f"a finite 3-vector ({unit}), got {x.tolist()}")
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        bad("tol", f"a finite number > 0, got {tol!r}")
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+        bad("rounds", f"an integer >= 1, got {rounds!r}")
+
+
 def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=None, field=None,
                        tol: float = 1e-10, rounds: int = 4) -> tuple[Tensor, Tensor]:
     """Equilibrium configuration near ``(p0, R0)`` (float64 (n, 3), (n, 3, 3)).
@@ -41,6 +68,7 @@ def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=
     """
     prm = rod.params(torch.float64)
     n = rod.n_nodes
+    _check_inputs(n, p0, R0, gravity, field, tol, rounds)
     fixed = tuple(int(i) for i in fixed)
     if not all(-n <= i < n for i in fixed):
         raise ValueError(f"static_equilibrium: fixed node indices must lie in [-{n}, {n - 1}], got {fixed}")

@@ -157,9 +157,10 @@ class Scene:
         kw.update(overrides)
         return LGVI(**kw)
 
-    def initial_configuration(self) -> dict:
-        """The initial positions/rotations/velocities (float64 tensors) from the builder."""
-        cfg = dict(self.initial(self.rod))
+    def initial_configuration(self, rod: Rod | None = None) -> dict:
+        """The initial positions/rotations/velocities (float64 tensors) from the builder, for the scene's rod
+        or ``rod`` (e.g. a stiffer one: an equilibrium start is then that rod's, under the scene's loads)."""
+        cfg = dict(self.initial(self.rod if rod is None else rod))
         unknown = set(cfg) - {"p", "R", "v", "omega"}
         if unknown:
             raise ValueError(f"scene {self.name}: initial builder returned unknown keys {sorted(unknown)}")
@@ -167,6 +168,9 @@ class Scene:
 
     def initial_state(self, integrator: LGVI | None = None, **overrides) -> LGVIState:
         """Initial :class:`~physics.lgvi.LGVIState` (made with ``integrator``, or with
-        ``make_integrator(**overrides)``)."""
+        ``make_integrator(**overrides)``), built for the integrator's rod (the scene's loads give the start)."""
+        if integrator is not None and overrides:
+            raise ValueError(f"Scene.initial_state: give an integrator or the overrides {sorted(overrides)} for "
+                             "make_integrator, not both (the overrides would be ignored)")
         integ = integrator if integrator is not None else self.make_integrator(**overrides)
-        return integ.initial_state(**self.initial_configuration())
+        return integ.initial_state(**self.initial_configuration(integ.rod))

@@ -85,6 +85,17 @@ def test_static_equilibrium_fixed_counts_negative_indices_from_the_tip():
     assert torch.allclose(p, p_ref, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="fixed"):
         static_equilibrium(rod, p0, R0, gravity=g, fixed=(0, n))
+    # each failed late or misleadingly: NaN gravity in scipy ("array must not contain infs or NaNs"), a (2,)
+    # gravity or short p0 in torch broadcasting/indexing, R0 = 2 I and tol NaN as "did not converge" after seconds
+    for kw, msg in (({"gravity": (float("nan"), 0.0, 0.0)}, r"gravity must be a finite 3-vector \(m/s\^2\)"),
+                    ({"gravity": (0.0, -9.81)}, "gravity must be a finite 3-vector"),
+                    ({"field": (0.0, float("inf"), 0.0)}, r"field must be a finite 3-vector \(T\)"),
+                    ({"p0": p0[:3]}, rf"p0 must be finite node positions \({n}, 3\) for this rod, got \(3, 3\)"),
+                    ({"R0": 2 * R0}, "R0 must be proper rotations"), ({"tol": float("nan")}, "tol must be"),
+                    ({"rounds": 0}, "rounds must be an integer >= 1, got 0")):
+        args = {"p0": p0, "R0": R0, "gravity": g, **kw}
+        with pytest.raises(ValueError, match="static_equilibrium: " + msg):
+            static_equilibrium(rod, args.pop("p0"), args.pop("R0"), **args)
 
 
 def test_sparse_free_free_frequencies_match_dense(monkeypatch):

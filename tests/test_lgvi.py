@@ -269,8 +269,9 @@ def test_the_time_is_the_start_plus_whole_steps():
     sim = LGVI(rod, dt=1e-4, loads=Loads(force=force), stability="off")
     end, traj = sim.simulate(sim.initial_state(), n_steps=5001, record_every=1000)
     assert traj.t[5].item() == 0.5 and end.step == 5001
-    # the start's half kick, simulate's check of the load's shape at the start, steps 0..4999; step 5000 at 0.5 s
-    assert len(seen) == 5003 and sum(seen) == 5002
+    # initial_state's check of the load and its half kick, simulate's check at the start, steps 0..4999; step 5000
+    # at 0.5 s
+    assert len(seen) == 5004 and sum(seen) == 5003
     assert not seen[-1]
     later = sim.initial_state(t=1.0)
     assert sim.simulate(later, n_steps=10_000, record_every=10**9)[0].t == 2.0
@@ -442,6 +443,19 @@ def test_a_node_load_not_given_per_node_is_refused():
     per_node[-1] = tip
     fine = LGVI(rod, dt=1e-5, loads=Loads(force=lambda t: per_node if t < 1.0 else None))
     assert fine.simulate(fine.initial_state(), n_steps=2)[0].p[-1, 1] > 0
+    # a NaN load was reported as a non-finite state ("state.v is not finite at node 4"), and a NaN start velocity
+    # stepped to NaN positions with no error
+    nan = per_node.clone()
+    nan[-1, 0] = float("nan")
+    for loads, msg in ((Loads(force=nan), r"Loads.force is not finite at node 4"),
+                       (Loads(force=lambda t: nan), r"Loads.force \(the value of its function at t=0 s\) is not finite at node 4"),
+                       (Loads(torque=nan), r"Loads.torque is not finite at node 4")):
+        with pytest.raises(ValueError, match=msg):
+            bad = LGVI(rod, dt=1e-5, loads=loads)
+            bad.simulate(bad.initial_state(), n_steps=2)
+    for kw in ({"v": nan}, {"omega": torch.full((3,), float("inf"), dtype=D)}):
+        with pytest.raises(ValueError, match=f"initial_state: {next(iter(kw))} must be finite"):
+            fine.initial_state(**kw)
 
 
 @pytest.mark.slow

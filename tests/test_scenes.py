@@ -390,6 +390,23 @@ def test_magnetic_scenes_start_in_equilibrium():
         assert float((s.p - s0.p).abs().max()) < 1e-8
 
 
+def test_an_overridden_rod_starts_in_its_own_equilibrium():
+    """Scene.initial_state(rod=...) started a stiffer rod from the scene rod's sag (out of equilibrium: it sprang
+    up); an integrator given beside overrides silently ignored them (float32 asked, float64 returned)."""
+    import dataclasses
+
+    sc = get_scene("pdms_circular")
+    stiff = dataclasses.replace(sc.rod, modulus_scale=2.0)
+    loads = Loads(gravity=sc.gravity, field=UniformField(sc.loads.field.B(0.0)))
+    s0 = sc.initial_state(rod=stiff, stability="off", loads=loads)
+    own = sc.initial_state(sc.make_integrator(stability="off", loads=loads))
+    assert float((s0.p - own.p).abs().max()) > 1e-3  # the stiffer rod sags less
+    s, _ = sc.make_integrator(rod=stiff, stability="off", loads=loads).simulate(s0, n_steps=100, record_every=100)
+    assert float((s.p - s0.p).abs().max()) < 1e-8
+    with pytest.raises(ValueError, match=r"give an integrator or the overrides \['dtype'\] .*not both"):
+        sc.initial_state(sc.make_integrator(), dtype=torch.float32)
+
+
 def test_clamped_semicircle_is_an_equilibrium():
     sc = get_scene("semicircle_heldout")  # no force before t = 1 s
     integ = sc.make_integrator(stability="off")
