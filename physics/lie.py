@@ -66,12 +66,19 @@ def so3_exp(w: Tensor) -> Tensor:
     return _eye_like(w) + a[..., None, None] * W + b[..., None, None] * (W @ W)
 
 
+def _check_matrix(R: Tensor, where: str) -> None:
+    """ValueError unless ``R`` is (..., 3, 3) (a shape check alone: free, and traced by torch.compile)."""
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"{where}: R must be (..., 3, 3) rotation matrices, got shape {tuple(R.shape)}")
+
+
 def so3_log(R: Tensor) -> Tensor:
     """Logarithm: rotation matrix to rotation vector with angle in ``[0, pi]``.
 
     Three branches: Taylor near 0, the standard formula, and an eigenvector-based one near pi
     where ``sin(theta)`` vanishes.
     """
+    _check_matrix(R, "so3_log")
     s = skew_vee(R)  # 2 sin(theta) n
     cos = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1) / 2).clamp(-1.0, 1.0)
     sin = 0.5 * s.norm(dim=-1)
@@ -130,6 +137,8 @@ def quat_to_matrix(q: Tensor) -> Tensor:
     """Unit quaternion ``(w, x, y, z)`` to rotation matrix (normalised first)."""
     if q.shape[-1] != 4:
         raise ValueError(f"quat_to_matrix: q must have trailing size 4, got {tuple(q.shape)}")
+    if not bool((q.norm(dim=-1) > 0).all()):  # normalising a zero quaternion gave a NaN matrix
+        raise ValueError("quat_to_matrix: q must be non-zero quaternions (w, x, y, z), got a zero one")
     w, x, y, z = quat_normalize(q).unbind(-1)
     return torch.stack(
         (
@@ -143,6 +152,7 @@ def quat_to_matrix(q: Tensor) -> Tensor:
 
 def matrix_to_quat(R: Tensor) -> Tensor:
     """Rotation matrix to unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's method)."""
+    _check_matrix(R, "matrix_to_quat")
     m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     tr = m00 + m11 + m22
     # four candidate solutions; pick the one with the largest (well-conditioned) pivot

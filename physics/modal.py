@@ -81,8 +81,11 @@ def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elast
         raise ValueError(f"frequencies: n_modes must be an integer >= 1, got {n_modes!r}")
     A = _reduced(rod, bc, energy_fn)
     n_rigid = 6 if bc == "free-free" else 0
-    k = min(n_modes + n_rigid, A.shape[0])
-    if A.shape[0] <= _DENSE_MAX:
+    if n_modes + n_rigid > A.shape[0]:  # eigh would return fewer modes than asked for
+        raise ValueError(f"frequencies: n_modes={n_modes} exceeds the {A.shape[0] - n_rigid} non-rigid modes of "
+                         f"this {rod.N}-element rod ({bc})")
+    k = n_modes + n_rigid
+    if A.shape[0] <= _DENSE_MAX or k >= A.shape[0]:  # eigsh needs k below the size
         lam = scipy.linalg.eigh(A.toarray(), eigvals_only=True, subset_by_index=[0, k - 1])
     else:
         # shift-invert just below 0, scaled to A: a fixed shift is lost in round-off beside stiff entries and

@@ -109,6 +109,11 @@ def test_sparse_free_free_frequencies_match_dense(monkeypatch):
     for bad in (0, 2.0, True):  # 0 failed in scipy's eigh, 2.0 in a slice
         with pytest.raises(ValueError, match=f"n_modes must be an integer >= 1, got {bad}"):
             modal.frequencies(rod, "clamped-free", bad)
+    two = aluminium_rod(2)  # 12 non-rigid modes either way; 13 returned 12 frequencies, silently
+    assert modal.frequencies(two, "free-free", 12).shape == (12,)
+    for bc in ("clamped-free", "free-free"):
+        with pytest.raises(ValueError, match=rf"n_modes=13 exceeds the 12 non-rigid modes of this 2-element rod \({bc}\)"):
+            modal.frequencies(two, bc, 13)
 
 
 def test_circular_arc_of_no_turn_is_straight_and_a_nan_turn_is_refused():

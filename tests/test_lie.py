@@ -22,6 +22,12 @@ def test_hat_vee_cross():
     assert torch.allclose(skew_vee(hat(a)), 2 * a)
     with pytest.raises(ValueError, match="trailing size 3"):
         hat(torch.zeros(4))
+    # a zero quaternion normalised to a NaN matrix; a 2 x 2 matrix failed with an IndexError
+    with pytest.raises(ValueError, match="quat_to_matrix: q must be non-zero"):
+        quat_to_matrix(torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]], dtype=D))
+    for fn in (so3_log, matrix_to_quat):
+        with pytest.raises(ValueError, match=rf"{fn.__name__}: R must be \(\.\.\., 3, 3\) rotation matrices, got shape \(2, 2\)"):
+            fn(torch.eye(2, dtype=D))
 
 
 @pytest.mark.parametrize("scale", [1e-9, 1e-3, 0.5, 2.0])
