@@ -506,10 +506,7 @@ class CosseratSolver:
         compiled path can trace, once per field structure, since its shapes cannot depend on values)."""
         pos = loads.base_position.detach().unsqueeze(-2)
         B = getattr(field, "B", None)
-        if isinstance(field, UniformField) and isinstance(B, Tensor):  # B (..., 1, 3) for a batch
-            if B.dim() > 1 and B.shape[-2] != 1:
-                raise ValueError(f"field: a batch of UniformField's B must have shape (..., 1, 3) (a single point per "
-                                 f"problem), got {tuple(B.shape)}; use B[..., None, :]")
+        if isinstance(field, UniformField) and isinstance(B, Tensor):  # B (..., 1, 3) for a batch (checked by it)
             return B.shape[:-2]
         key = None if flat is None else (flat[0], tuple(pos.shape), float(t))
         if key is not None and key in self._field_shapes:

@@ -16,6 +16,7 @@ A scene started at the result stays at rest up to round-off.
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 import scipy.optimize
@@ -50,9 +51,9 @@ def _check_inputs(n: int, p0, R0, gravity, field, tol, rounds) -> None:
             x = torch.as_tensor(x, dtype=torch.float64)
             if x.shape != (3,) or not bool(torch.isfinite(x).all()):
                 bad(name, f"a finite 3-vector ({unit}), got {x.tolist()}")
-    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+    if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
         bad("tol", f"a finite number > 0, got {tol!r}")
-    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+    if isinstance(rounds, bool) or not isinstance(rounds, numbers.Integral) or rounds < 1:
         bad("rounds", f"an integer >= 1, got {rounds!r}")
 
 

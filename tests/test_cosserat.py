@@ -572,7 +572,7 @@ def test_bad_field_and_magnet_input_raise_clear_errors():
     with pytest.raises(ValueError, match="magnet_moments must be finite"):
         rod.params(D, magnet_moments=torch.tensor([[float("nan"), 0.0, 0.0]], dtype=D))
     B = torch.tensor([[0.0, 0.01, 0.0], [0.01, 0.0, 0.0]], dtype=D)
-    with pytest.raises(ValueError, match=r"UniformField's B must have shape \(\.\.\., 1, 3\) .* got \(2, 3\)"):
+    with pytest.raises(ValueError, match=r"one per batch member, \(\.\.\., 1, 3\) .* got shape \(2, 3\)"):
         CosseratSolver(rod).solve(field=UniformField(B))
     with pytest.raises(ValueError, match="magnitude .* must be finite and > 0, got 0.0"):
         fit_uniform_field(CosseratSolver(rod), 0.5, magnitude=0.0)
