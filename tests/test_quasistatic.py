@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cmlearn.data.quasistatic import compose, deviation, static_state
+from cmlearn.data.quasistatic import StaticTrack, compose, deviation, static_state
 from cmlearn.io import CheckpointError
 from cmlearn.models.quasistatic import QuasiStaticConfig, QuasiStaticCorrection
 from cmlearn.surrogate import load_checkpoint, surrogate_checkpoints
@@ -171,6 +171,23 @@ def test_the_shipped_hybrid_reproduces_its_recorded_check_and_beats_the_static_r
     scene = get_task("magnetic_rod").base_scene()
     with pytest.raises(ValueError, match="has no coil field"):
         engine.stepper(replace(scene, loads=replace(scene.loads, field=None)))
+    # the LGVI's node positions (11 of them, as many as the tracked points) ran to NaN frames; 40 frames for a
+    # 6-frame scene ran past its duration; a given track was ignored and solved again
+    from cmlearn.data.magnetic import tracked_points
+    short = replace(scene, duration=0.1)
+    cfg = short.initial_configuration()
+    good = tracked_points(engine.task, short.rod, cfg["p"], cfg["R"]).expand(6, -1, -1)
+    with pytest.raises(ValueError, match=r"positions are not tracked points .* off its 20 mm lever arm"):
+        engine.run(short, positions=cfg["p"].expand(6, -1, -1), start=2)
+    with pytest.raises(ValueError, match=r"positions must hold the scene's 6 frames .*got \(40, 11, 3\)"):
+        engine.run(short, positions=good[:1].expand(40, -1, -1), start=2)
+    with pytest.raises(ValueError, match="track must be the scene's StaticTrack at its 6 frames"):
+        engine.run(short, positions=good, start=2, track="a track")
+    cp, Rp, P, R = engine.run(short, positions=good, start=2)
+    again = engine.run(short, positions=good, start=2, track=StaticTrack(P.new_zeros(6, 2, 3), R[:1].expand(6, -1, -1, -1),
+                                                                        torch.ones(6, dtype=P.dtype), 0.0))
+    assert cp.shape == (3, 2, 3) and bool(torch.isfinite(cp).all())
+    assert float((again[2] - 0).abs().max()) == 0.0  # the given track is the one composed with
 
 
 def test_the_field_hook_gives_a_diverging_trial_position_a_nan_field():
@@ -513,6 +530,12 @@ def test_a_cached_static_track_is_served_only_for_the_same_times_clamp_truncatio
     monkeypatch.setattr(physics, "__version__", "9.9.9")
     qs.cached_static_track(path, None, None, [0.0, 0.04])
     assert len(calls) == 6
+    # another profile's currents (or coils) were served the first one's track (26.6 mm off at 4 A)
+    amps = [torch.zeros(6, dtype=torch.float64), torch.full((6,), 4.0, dtype=torch.float64)]
+    for I in amps + amps[-1:]:
+        qs.cached_static_track(path, lambda t, I=I: I, None, [0.0, 0.04])
+    qs.cached_static_track(path, lambda t: amps[1], "other coils", [0.0, 0.04])
+    assert len(calls) == 9
 
 
 def test_a_batch_mates_failed_warm_step_leaves_the_converged_problems_solution_alone():

@@ -91,6 +91,25 @@ def magnet_frames(task, rod, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return c, torch.stack((e1, e2, e3), -1), d
 
 
+def check_tracked_points(task, rod, points: Tensor, name: str = "positions") -> None:
+    """ValueError unless ``points`` (..., n_tracked, 3) are finite tracked points of ``task`` (:func:`tracked_points`):
+    each magnet's markers at :data:`MARKER_OFFSET` (within 10 %) from its block's centre (node positions of the
+    same count would give frames of 0/0)."""
+    n = len(task.tracked)
+    if not torch.is_tensor(points) or points.shape[-2:] != (n, 3) or not bool(torch.isfinite(points).all()):
+        raise ValueError(f"{name} must be finite tracked points (..., {n}, 3) of task {task.name!r}, got "
+                         f"{tuple(points.shape) if torch.is_tensor(points) else type(points).__name__}")
+    ab, mk = _slots(task, rod)
+    c = 0.5 * (points[..., [a for a, _ in ab], :] + points[..., [b for _, b in ab], :])
+    arms = torch.stack([(points[..., list(pair), :] - c[..., k:k + 1, :]).norm(dim=-1)
+                        for k, pair in enumerate(mk)], -2)
+    worst = float((arms / MARKER_OFFSET - 1).abs().max())
+    if worst > 0.1:
+        raise ValueError(f"{name} are not tracked points of task {task.name!r}: a magnet's marker lies "
+                         f"{worst:.0%} off its {MARKER_OFFSET * 1e3:g} mm lever arm (node positions? use "
+                         "tracked_points)")
+
+
 def magnet_wrench(emns, centre: Tensor, R: Tensor, moments: Tensor, currents: Tensor):
     """Force and torque (..., K, 3) on magnets of body moments ``moments`` (K, 3) at ``centre`` with
     rotation ``R``, in ``emns`` driven by ``currents`` (..., C) (exact coil superposition)."""

@@ -19,6 +19,7 @@ Coordinates (12 per frame, two magnets in :data:`~cmlearn.surrogate.magnetic.MAG
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 import warnings
@@ -222,13 +223,23 @@ def compose(d: Tensor, P: Tensor, Rs: Tensor) -> tuple[Tensor, Tensor]:
     return P + dc, so3_exp(dth) @ Rs
 
 
+def _drive_digest(currents, emns, times) -> str:
+    """SHA-256 of the currents at ``times`` and of the coils (their specs' repr): what else a track depends on."""
+    h = hashlib.sha256(repr(emns).encode())
+    if currents is not None:
+        for t in times:
+            h.update(_currents_at(currents, t).contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 def cached_static_track(path: str | Path | None, currents, emns, times, **kw) -> StaticTrack:
     """:func:`static_track`, read from ``path`` where it holds the same ``times``, keywords ``kw`` (clamp, nodes,
-    ``truncate``) and physics version (and written there, atomically, where it does not); ``None``: no cache. The
-    file does not know the currents: name it after them."""
+    ``truncate``), physics version, coils and currents at ``times`` (and written there, atomically, where it does
+    not); ``None``: no cache."""
     times = [float(t) for t in times]
     key = {"times": times, "physics_version": physics.__version__,
-           "kw": {k: v.tolist() if isinstance(v, Tensor) else v for k, v in sorted(kw.items())}}
+           "kw": {k: v.tolist() if isinstance(v, Tensor) else v for k, v in sorted(kw.items())},
+           "drive": _drive_digest(currents, emns, times)}
     if path is not None and Path(path).exists():
         blob = torch.load(path, weights_only=True)
         if blob.get("key") == key and "margin" in blob:

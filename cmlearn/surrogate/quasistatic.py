@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from cmlearn.data.generate import cached_dataset, dataset_path, reference_rollout
-from cmlearn.data.magnetic import magnet_frames
+from cmlearn.data.magnetic import check_tracked_points, magnet_frames
 from cmlearn.data.quasistatic import (StaticTrack, cached_static_track, compose, deviation, static_state,
                                       static_track, with_fold_clock)
 from cmlearn.data.tasks import get_task
@@ -179,16 +179,25 @@ class QuasiStaticSurrogate:
         self._check_scene(scene)
         self.task.check_duration(scene.duration)
         T = int(round(scene.duration / self.task.delta)) + 1
+        if positions is not None:
+            check_tracked_points(self.task, scene.rod, positions)
+            if positions.dim() != 3 or positions.shape[0] != T:
+                raise ValueError(f"positions must hold the scene's {T} frames (T, n_tracked, 3), got "
+                                 f"{tuple(positions.shape)}")
+        elif start:
+            raise ValueError("a start after rest needs the LGVI's positions for its history")
+        if track is None:
+            track = scene_track(self.task, scene, T, cache)
+        elif not (isinstance(track, StaticTrack) and track.P.shape[:2] == (T, 2)):
+            raise ValueError(f"track must be the scene's StaticTrack at its {T} frames (P ({T}, 2, 3)), got "
+                             f"{tuple(track.P.shape) if isinstance(track, StaticTrack) else type(track).__name__}")
+        P, R = track.P, track.R
+        s = static_state(P, R, self.rest, track.margin)
         if positions is None:
-            if start:
-                raise ValueError("a start after rest needs the LGVI's positions for its history")
-            if track is None:
-                track = scene_track(self.task, scene, T, cache)
-            P, R = track.P, track.R
-            s, d = static_state(P, R, self.rest, track.margin), torch.zeros(P.shape[0], 12, dtype=torch.float64)
+            d = torch.zeros(P.shape[0], 12, dtype=torch.float64)
         else:
-            s, d, track = profile_tracks(self.task, scene, positions, self.rest, cache)
-            P, R = track.P, track.R
+            c, Rl, _ = magnet_frames(self.task, scene.rod, positions.double())
+            d = deviation(c, Rl, P, R)
         dev = rollout_from(self.model, s, d, start)
         cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
         return cp, Rp, P[start + 1:], R[start + 1:]
