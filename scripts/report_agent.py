@@ -20,7 +20,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--agent", type=readable(), default=str(root / "checkpoints" / "iqn_agent.json"),
                     help="the agent's metadata (<name>.json), or its checkpoint with the metadata beside it")
-    ap.add_argument("--out", type=writable(), default=str(root / "docs" / "agent_training"))
+    ap.add_argument("--out", type=writable(), default=str(root / "docs" / "agent_training"),
+                    help="prefix of the report: <out>.png and <out>.md")
     a = ap.parse_args(argv)
     import matplotlib
     matplotlib.use("Agg")
@@ -46,7 +47,9 @@ def main(argv=None):
     bx.set(xlabel="wall time (min)", ylabel="mean return")
     fig.tight_layout()
     out = Path(a.out)
-    atomic_write(out.with_suffix(".png"), lambda f: fig.savefig(f, format="png", dpi=110))
+    out = out.with_suffix("") if out.suffix in (".png", ".md") else out  # a prefix: x.v2 wrote x.png and x.md
+    png, md_path = out.with_name(out.name + ".png"), out.with_name(out.name + ".md")
+    atomic_write(png, lambda f: fig.savefig(f, format="png", dpi=110))
     lines = [f"Training of `{path.with_suffix('.pt').name}`: `{meta.get('command', '')}`; "
              f"{meta.get('frames')} frames, {meta.get('updates')} updates, {meta.get('wall_s')} s wall "
              f"({meta.get('threads')} thread(s), {meta.get('workers')} collector process(es) x "
@@ -59,9 +62,9 @@ def main(argv=None):
     lines += [f"| {e['frames']}{tag.get(e.get('phase'), '')} | {e['updates']} | {e['wall_s'] / 60:.1f} | "
               f"{100 * e['success_rate']:.0f} % | {e['mean_steps']:.1f} | {e['return']:.3f} |" for e in ev]
     md = "\n".join(lines) + "\n"
-    write_text_atomic(out.with_suffix(".md"), md)
+    write_text_atomic(md_path, md)
     print(md)
-    print(json.dumps({"points": len(ev), "final_success": ev[-1]["success_rate"], "png": str(out.with_suffix(".png"))}))
+    print(json.dumps({"points": len(ev), "final_success": ev[-1]["success_rate"], "png": str(png)}))
 
 
 if __name__ == "__main__":

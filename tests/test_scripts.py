@@ -1339,6 +1339,8 @@ def test_bench_dataset_last_line_is_strict_json_when_a_run_is_not_finite(monkeyp
     ("bench/quasistatic", ["--quick", "--hybrid", "missing.pt"], "argument --hybrid: no such file"),
     ("bench/surrogate", ["--quick", "--task", "rod"], "argument --task: invalid choice: 'rod'"),
     ("bench/surrogate", ["--quick", "--checkpoint", "missing.pt"], "argument --checkpoint: no such file"),
+    ("bench/surrogate", ["--quick", "--scene", "bogus"],
+     "--scene: 'bogus' is not a scene of task 'semicircle'; choose from semicircle, semicircle_heldout"),
     ("report_node_density", ["--variants", "1"], "argument --variants: must be >= 2, got '1'"),
 ])
 def test_bench_and_report_arguments_that_cannot_run_are_usage_errors(script, argv, msg, monkeypatch, capsys, tmp_path):
@@ -1379,3 +1381,7 @@ def test_report_agent_reads_the_metadata_beside_a_checkpoint_and_names_a_bad_fil
     (tmp_path / "bad.json").write_text("{bad")
     with pytest.raises(SystemExit, match=r"--agent: cannot read the agent's metadata .*bad.json' \(JSONDecodeError"):
         report.main(["--agent", str(tmp_path / "bad.json"), "--out", str(tmp_path / "rep2")])
+    # --out is a prefix: x.v2 wrote x.png and x.md (with_suffix), so x.v3 overwrote it
+    report.main(["--agent", str(ROOT / "checkpoints" / "iqn_agent.json"), "--out", str(tmp_path / "run.v2")])
+    report.main(["--agent", str(ROOT / "checkpoints" / "iqn_agent.json"), "--out", str(tmp_path / "run.v3.md")])
+    assert sorted(p.name for p in tmp_path.glob("run.*")) == ["run.v2.md", "run.v2.png", "run.v3.md", "run.v3.png"]

@@ -1315,6 +1315,9 @@ def test_a_checkpoint_must_name_its_task(tmp_path):
         torch.save(seal({**plain, "meta": {"metrics": {}}}), tmp_path / "bad.pt")
         with pytest.raises(CheckpointError, match="bad.pt: its metadata names no surrogate task"):
             load(tmp_path / "bad.pt")
+    from cmlearn.surrogate.engine import load_checkpoints
+    with pytest.raises(ValueError, match="give at least one checkpoint"):  # a bare StopIteration
+        load_checkpoints([])
 
 def test_a_scene_of_another_rod_and_misshapen_step_inputs_are_clear_errors():
     engine = Surrogate.load(ROOT / "checkpoints" / "semicircle.pt")

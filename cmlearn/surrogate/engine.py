@@ -435,6 +435,9 @@ class Stepper:
 def load_checkpoints(paths, magnetic: bool = False) -> tuple[dict, SurrogateTask]:
     """``({file name: Surrogate}, task)`` of checkpoints that must all be of one task, and of a magnetic-rod task
     (a task with its own module) where ``magnetic``; ``ValueError`` otherwise."""
+    paths = list(paths)
+    if not paths:  # next() of nothing: a bare StopIteration
+        raise ValueError("give at least one checkpoint")
     engines = {Path(p).name: Surrogate.load(p) for p in paths}
     tasks = {e.task.name for e in engines.values()}
     task = next(iter(engines.values())).task

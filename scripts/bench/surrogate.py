@@ -79,6 +79,9 @@ def main(argv=None):
     rounds = a.rounds or (3 if a.quick else 9)
     torch.set_num_threads(a.threads)
     task = get_task(a.task)
+    if a.scene and a.scene not in (task.scene, *task.heldout):  # an unknown name gave a traceback
+        ap.error(f"--scene: {a.scene!r} is not a scene of task {task.name!r}; choose from "
+                 f"{', '.join((task.scene, *task.heldout))}")
     path = find_checkpoint(task.name, a.checkpoint or None)
     engine = Surrogate.load(path, task=task.name)
     scene = task.scene_by_name(a.scene or task.scene)
