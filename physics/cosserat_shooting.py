@@ -392,6 +392,8 @@ class CosseratSolver:
         if field is not None and not callable(field) and not hasattr(field, "wrench"):
             raise TypeError("field must be callable as field(t, positions) -> B | (B, dB) or have "
                             "wrench(t, positions, moments)")
+        if field is not None and not self.rod.magnets:
+            raise ValueError("field: this rod has no magnets for the field to act on (it would be ignored)")
         max_iter = self.max_iter if max_iter is None else max_iter
         for nm, v in (("load_steps", load_steps), ("max_load_steps", max_load_steps), ("max_iter", max_iter)):
             check_integer(nm, v)

@@ -209,6 +209,8 @@ class LGVI:
         self._gravity = None if g is None else torch.as_tensor(g, dtype=self.dtype, device=self.device)
         if self._gravity is not None and (self._gravity.shape[-1:] != (3,) or not bool(self._gravity.isfinite().all())):
             raise ValueError(f"Loads.gravity must be a finite 3-vector (m/s^2), got {self.loads.gravity!r}")
+        if self.loads.field is not None and self.params.magnet_elem.numel() == 0:
+            raise ValueError("Loads.field: this rod has no magnets for the field to act on (it would be ignored)")
         self._has_magnets = self.params.magnet_elem.numel() > 0 and self.loads.field is not None
         for name in ("force", "torque"):
             if torch.is_tensor(getattr(self.loads, name)):

@@ -578,3 +578,11 @@ def test_bad_field_and_magnet_input_raise_clear_errors():
         fit_uniform_field(CosseratSolver(rod), 0.5, magnitude=0.0)
     with pytest.raises(ValueError, match="max_evals must be an integer >= 1, got 0"):
         fit_uniform_field(CosseratSolver(rod), 0.5, max_evals=0)
+    for kw, msg in (({"reg": -1.0}, "reg must be finite and >= 0, got -1.0"),  # ran: loss -1
+                    ({"angle_tol": float("nan")}, "angle_tol must be finite and > 0, got nan"),  # reached nothing
+                    ({"field_angle": float("inf")}, "field_angle must be finite, got inf")):
+        with pytest.raises(ValueError, match=msg):
+            fit_uniform_field(CosseratSolver(rod), 0.5, **kw)
+    plain = CosseratRod.uniform(0.05, CircularSection(1e-3), Material(E=2e6, density=1100.0, nu=0.5), n_nodes=9)
+    with pytest.raises(ValueError, match="field: this rod has no magnets"):  # the field was ignored
+        CosseratSolver(plain).solve(field=UniformField((0.05, 0.0, 0.0)))

@@ -453,6 +453,8 @@ def test_a_node_load_not_given_per_node_is_refused():
         with pytest.raises(ValueError, match=msg):
             bad = LGVI(rod, dt=1e-5, loads=loads)
             bad.simulate(bad.initial_state(), n_steps=2)
+    with pytest.raises(ValueError, match="Loads.field: this rod has no magnets"):  # the field was ignored
+        LGVI(rod, dt=1e-5, loads=Loads(field=UniformField((0.0, 0.01, 0.0))))
     for kw in ({"v": nan}, {"omega": torch.full((3,), float("inf"), dtype=D)}):
         with pytest.raises(ValueError, match=f"initial_state: {next(iter(kw))} must be finite"):
             fine.initial_state(**kw)
