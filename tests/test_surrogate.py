@@ -221,7 +221,8 @@ def test_windows_and_splits_refuse_ranges_outside_the_data():
     assert len(RolloutWindows(P, wr, [(1, 0, 19)], eta=2, horizon=4)) == 14
     for ranges, kw, msg in (([(0, 0, 40)], {}, r"ranges \[\(0, 0, 40\)\] lie outside the data"),
                             ([(2, 0, 19)], {}, r"ranges \[\(2, 0, 19\)\] lie outside the data"),
-                            ([(0, 0, 19)], {"horizon": 0}, "horizon >= 1, got eta 2 and horizon 0"),
+                            ([(0, 0, 19)], {"horizon": 0}, "horizon must be an integer >= 1, got 0"),
+                            ([(0, 0, 19)], {"eta": 2.0}, "eta must be an integer >= 0, got 2.0"),  # range()'s TypeError
                             ([(0, 0, 19)], {"stride": 0}, "stride must be an integer >= 1, got 0"),  # range()'s error
                             ([(0, 0, 19)], {"stride": -1}, "stride must be an integer >= 1, got -1"),
                             ([(0, 0, 19)], {"wrench": wr[:, :10]}, r"wrench \(2, 10, 3, 3\) must hold the T - 1")):

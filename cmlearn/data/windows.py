@@ -10,6 +10,8 @@ its step from frame k + 1 to frame k uses the force of interval k. A step that h
 (or pump) energy fits the reversed windows badly, so training on both directions penalises that."""
 from __future__ import annotations
 
+import numbers
+
 from torch import Tensor
 from torch.utils.data import Dataset
 
@@ -64,10 +66,9 @@ class RolloutWindows(Dataset):
             raise ValueError(f"inputs {tuple(inputs.shape)} must match wrench {tuple(wrench.shape)} in (V, T-1)")
         if inputs is not None and time_reversal:
             raise ValueError("time_reversal: a closed-loop wrench model's inputs are not reversible windows")
-        if eta < 0 or horizon < 1:
-            raise ValueError(f"eta must be >= 0 and horizon >= 1, got eta {eta} and horizon {horizon}")
-        if not (isinstance(stride, int) and stride >= 1):
-            raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
+        for name, v, low in (("eta", eta, 0), ("horizon", horizon, 1), ("stride", stride, 1)):
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < low:  # 2.0 failed in range()
+                raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
         V, T = positions.shape[:2]
         if tuple(wrench.shape[:2]) != (V, T - 1):
             raise ValueError(f"wrench {tuple(wrench.shape)} must hold the T - 1 = {T - 1} intervals of each of the "
