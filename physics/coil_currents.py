@@ -37,6 +37,7 @@ import math
 import torch
 from torch import Tensor
 
+from .magnetics.coils import check_current_batch
 from .magnetics.dipole import dipole_torque, force_from_gradient
 from .programs import is_tracing
 
@@ -56,6 +57,14 @@ def _check_matrix(name: str, v, cols: int | None = None) -> Tensor:
     if v.dim() != 2 or (cols is not None and v.shape[1] != cols) or not bool(torch.isfinite(v).all()):
         raise ValueError(f"{name} must be a finite 2-D array (rows, {cols or 'C'}), got shape {tuple(v.shape)}")
     return v
+
+
+def _time(t) -> float:
+    """An eager profile's time as a float; NaN gave the last set-point (and inf the same, by bisection)."""
+    t = float(t)
+    if not math.isfinite(t):
+        raise ValueError(f"t must be a finite time (s), got {t!r}")
+    return t
 
 
 def _positive(name: str, seq, n: int) -> tuple[float, ...]:
@@ -97,7 +106,7 @@ class MinJerkCurrents:
         if is_tracing():  # traced (LGVI.compiled_rollout): every move's clamped quintic, no branch
             s = min_jerk((t - self._move_start.to(t)) / self._move_length.to(t))
             return self.setpoints[0].to(t) + s @ self.setpoints.diff(dim=0).to(t)
-        t = float(t)
+        t = _time(t)
         j = bisect.bisect_right(self._knots, t)
         if j >= len(self._knots):
             return self.setpoints[-1].clone()
@@ -132,7 +141,7 @@ class SinusoidCurrents:
         if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
             w = torch.sin(2 * math.pi * self.frequencies[:, None].to(t) * t + self.phases.to(t))
             return min_jerk(t / self.ramp) * (self.amplitudes.to(t) * w).sum(0)
-        t = float(t)
+        t = _time(t)
         w = torch.sin(2 * math.pi * self.frequencies[:, None] * t + self.phases)
         return min_jerk(t / self.ramp) * (self.amplitudes * w).sum(0)
 
@@ -189,6 +198,11 @@ class CoilField:
     def field_and_gradient(self, t, positions: Tensor) -> tuple[Tensor, Tensor]:
         I = torch.as_tensor(self.currents(t), dtype=positions.dtype, device=positions.device)
         beta, grad = self._maps(t if is_tracing() else float(t), positions)
+        # shapes only (traceable): (1,) currents were broadcast to every coil, (5,) for six a bare RuntimeError
+        if I.shape[-1:] != beta.shape[-2:-1]:
+            raise ValueError(f"currents must return the coil currents (C,) or (..., C) for the C = {beta.shape[-2]} "
+                             f"coils of the eMNS, got shape {tuple(I.shape)}")
+        check_current_batch(positions, I)
         B = (beta * I[..., None, :, None]).sum(-2)
         dB = (grad * I[..., None, :, None, None]).sum(-3)
         return B, dB

@@ -39,6 +39,42 @@ def test_current_profiles_traced_equal_eager():
     assert torch.allclose(fn(t), printed(2.3), rtol=0, atol=1e-12)
 
 
+def test_coil_field_checks_the_currents_shape():
+    """CoilField broadcast (1,) currents to all six coils and gave a bare RuntimeError for (5,); the currents' last
+    dim must now be the eMNS's coil count, and a batch of currents needs positions (..., n, 3) with a batch dim.
+    The check reads shapes only: the hook still compiles in one graph."""
+    from physics.magnetics.emns import six_coil_emns
+    emns = six_coil_emns(n_axial=2, n_radial=2)
+    x = torch.tensor([[0.01, 0.0, 0.0], [0.0, 0.01, -0.01]], dtype=F64)
+    for bad in (torch.tensor([2.0]), torch.ones(5, dtype=F64), torch.tensor(1.0)):
+        with pytest.raises(ValueError, match=r"currents must return the coil currents .* C = 6 coils.*got shape"):
+            CoilField(emns, lambda t, bad=bad: bad)(0.0, x)
+    with pytest.raises(ValueError, match=r"give points \(\.\.\., P, 3\) for a batch of currents"):
+        CoilField(emns, lambda t: torch.ones(2, 6, dtype=F64))(0.0, x)
+    assert CoilField(emns, lambda t: torch.ones(2, 6, dtype=F64))(0.0, x.expand(2, 2, 3))[0].shape == (2, 2, 3)
+    profile = MinJerkCurrents(torch.tensor([[0.0] * 6, [1.0, -1, 2, 0, 0, 1]], dtype=F64), (0.5,), (0.1, 1.0))
+    field = CoilField(emns, profile)
+    B, dB = field(0.3, x)  # eager: evaluates and keeps the maps
+    fn = torch.compile(lambda t, p: field(t, p), backend="eager", fullgraph=True)
+    Bc, dBc = fn(torch.tensor(0.3, dtype=F64), x)
+    assert torch.allclose(Bc, B, rtol=1e-12, atol=0) and torch.allclose(dBc, dB, rtol=1e-12, atol=0)
+
+
+def test_profiles_refuse_a_non_finite_time():
+    """MinJerkCurrents at t = NaN returned the last set-point (and SinusoidCurrents NaN currents); an eager
+    evaluation now refuses a non-finite time. The traced form (a 0-d tensor time, no branch on its value) does
+    not look, as any value check there would need a data-dependent branch."""
+    from physics.coil_currents import SinusoidCurrents
+    mj = MinJerkCurrents(torch.tensor([[0.0, 1.0], [2.0, -1.0]], dtype=F64), (0.5,), (0.1, 1.0))
+    sn = SinusoidCurrents([[1.0, 0.5]], [0.3], [[0.0, 1.0]])
+    for profile in (mj, sn):
+        for t in (math.nan, math.inf, -math.inf, torch.tensor(math.nan, dtype=F64)):
+            with pytest.raises(ValueError, match="t must be a finite time"):
+                profile(t)
+        assert torch.isfinite(profile(0.4)).all()
+    assert torch.equal(mj(5.0), torch.tensor([2.0, -1.0], dtype=F64))
+
+
 @pytest.mark.slow
 def test_compiled_magnetic_rod_refreshes_the_field_where_the_eager_rollout_does():
     """The magnetic rod's compiled LGVI (2 steps a call) under two fast set-point moves (batch 2): the blocks in

@@ -168,6 +168,48 @@ def test_bad_coil_input_and_points():
             loop.field(torch.tensor([[x, 0.0, x]], dtype=dt))
 
 
+def test_a_coil_with_a_winding_pack_needs_its_loops():
+    """Coil(length=..., thickness=...) left n_axial = n_radial = 1 and was silently one thin loop (41 % off the
+    6 x 4 pack on its axis 10 mm beyond its end); the loops along an extent are now required, numpy integers
+    count, and a copy of a thin coil given a length (dataclasses.replace) is checked again."""
+    from dataclasses import replace
+    with pytest.raises(ValueError, match="n_axial must be given for a coil of length 0.08"):
+        Coil(0.03, turns=100, length=0.08, thickness=0.025)
+    with pytest.raises(ValueError, match="n_radial must be given for a coil of thickness 0.025"):
+        Coil(0.03, turns=100, length=0.08, thickness=0.025, n_axial=6)
+    with pytest.raises(ValueError, match="n_axial"):
+        replace(Coil(0.03), length=0.05)
+    pack = Coil(0.03, turns=100, length=0.08, thickness=0.025, n_axial=np.int64(6), n_radial=np.int32(4))
+    assert (pack.n_axial, pack.n_radial) == (6, 4) and type(pack.n_axial) is int and len(pack.loops()[2]) == 24
+    assert len(Coil(0.03, length=0.08, n_axial=3).loops()[2]) == 3  # no thickness: one loop across
+    p = torch.tensor([[0.0, 0.0, 0.06]], dtype=F64)
+    assert torch.equal(Coil(0.03, turns=100).field(p), CircularLoop(0.03, turns=100).field(p))
+    for bad in (0, 2.0, True, np.bool_(True)):
+        with pytest.raises(ValueError, match="n_axial must be an integer"):
+            Coil(0.03, length=0.01, n_axial=bad)
+
+
+def test_loop_field_per_amp_checks_its_loops():
+    """Weights (L,) gave an einsum error, radii (3,) for two loops a size mismatch and min_distance=NaN the
+    message that a point 0.1 m away lies on the wire; each now names the parameter and the expected shape."""
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]], dtype=F64)
+    c, n = torch.zeros(2, 3, dtype=F64), torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=F64)
+    r = torch.tensor([0.1, 0.2], dtype=F64)
+    with pytest.raises(ValueError, match=r"weights must have shape \(L, C\) = \(2, C\).*got \(2,\)"):
+        loop_field_per_amp(pts, c, n, r, torch.ones(2))
+    with pytest.raises(ValueError, match=r"radii \(L,\).*radii \(3,\)"):
+        loop_field_per_amp(pts, c, n, torch.tensor([0.1, 0.2, 0.3]))
+    with pytest.raises(ValueError, match=r"centres and axes must have shape \(L, 3\)"):
+        loop_field_per_amp(pts, c[:1], n, r)
+    for bad in (math.nan, -1e-3, math.inf):
+        with pytest.raises(ValueError, match="min_distance must be a finite distance"):
+            loop_field_per_amp(pts, c, n, r, min_distance=bad)
+    with pytest.raises(ValueError, match="weights finite"):
+        loop_field_per_amp(pts, c, n, r, torch.tensor([[1.0], [math.nan]]))
+    B, _ = loop_field_per_amp(pts, c, n, r, torch.tensor([[1.0], [2.0]]))
+    assert B.shape == (2, 1, 3)
+
+
 def test_coil_winding_pack():
     thin = Coil(0.03, turns=100, current=2.0, centre=(0.0, 0.01, 0.0), axis=(0.0, 0.0, 1.0))
     loop = CircularLoop(0.03, turns=100, current=2.0, centre=(0.0, 0.01, 0.0))
@@ -239,6 +281,25 @@ def test_nested_pairs_rotating_field():
         coils.currents_for_field(torch.tensor([0.0, 0.0, 0.01], dtype=F64))
     with pytest.raises(ValueError, match="currents"):
         coils.field(torch.zeros(1, 3), currents=torch.tensor([1.0, math.inf]))
+
+
+def test_nested_pairs_line_batched_currents_up_with_the_points():
+    """Points (T, 3) with currents (T, 2), one point per frame, gave a (T, T, 3) field (every frame's currents at
+    every frame's point); a batch of currents needs points (..., P, 3) whose batch dims broadcast against its."""
+    coils = NestedHelmholtz()
+    x = torch.tensor([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.02, 0.0]], dtype=F64)
+    I = torch.tensor([[1.0, 0.0], [0.0, 2.0], [-1.0, 1.0]], dtype=F64)
+    with pytest.raises(ValueError, match=r"give points \(\.\.\., P, 3\) for a batch of currents.*\(T, 1, 3\)"):
+        coils.field_and_gradient(x, I)
+    with pytest.raises(ValueError, match="give points"):
+        coils.field(x, I)
+    B, dB = coils.field_and_gradient(x[:, None], I)
+    assert B.shape == (3, 1, 3) and dB.shape == (3, 1, 3, 3)
+    for k in range(3):
+        assert torch.allclose(B[k], coils.field(x[k:k + 1], I[k]), rtol=1e-14, atol=0)
+    assert coils.field(x[None], I).shape == (3, 3, 3)  # the same points in every frame
+    with pytest.raises(ValueError, match=r"do not line up with points of shape \(2, 1, 3\)"):
+        coils.field(x[:2, None], I)
 
 
 def test_superposition_of_coils():

@@ -91,6 +91,81 @@ def test_allocation_round_trips_feasible_requests(emns, point):
     assert torch.allclose(al.achieved, torch.cat([y[:3], F]), rtol=1e-8)
 
 
+def test_batched_currents_need_points_with_a_points_axis(emns):
+    """Points (T, 3), one magnet per frame, with currents (T, C) gave a (T, T, 3) field in the eMNS and its table
+    (every frame's currents at every frame's point); a batch of currents now needs points (..., P, 3) whose batch
+    dims broadcast against its: (T, 1, 3) gives each frame its own field."""
+    from physics.magnetics.field_table import CoilFieldTable
+    table = CoilFieldTable.from_emns(emns, radius=0.03, spacing=2e-3, order=2)
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(4, 3, generator=g, dtype=F64) * 0.02
+    I = torch.rand(4, 6, generator=g, dtype=F64) * 4
+    calls = (emns.field_and_gradient, emns.field, table.field_and_gradient, table.field,
+             lambda p, i: table.field_and_gradient(p, i, check=False))
+    for call in calls:
+        with pytest.raises(ValueError, match=r"give points \(\.\.\., P, 3\) for a batch of currents"):
+            call(x, I)
+        with pytest.raises(ValueError, match=r"do not line up with points of shape \(3, 1, 3\)"):
+            call(x[:3, None], I)
+    for model in (emns, table):
+        B, dB = model.field_and_gradient(x[:, None], I)
+        assert B.shape == (4, 1, 3) and dB.shape == (4, 1, 3, 3)
+        for k in range(4):
+            Bk, dBk = model.field_and_gradient(x[k:k + 1], I[k])
+            assert torch.allclose(B[k], Bk, rtol=1e-13, atol=0) and torch.allclose(dB[k], dBk, rtol=1e-13, atol=0)
+    assert emns.field(x[None], I).shape == (4, 4, 3)  # the same points for every member: a batch axis of 1
+    assert torch.equal(emns.field(x[:1], I), emns.field(x[:1][None], I))  # one point (1, 3) is shared too
+    with pytest.raises(ValueError, match="EMNS.currents of shape"):  # stored currents are checked the same way
+        emns.with_currents(I).field(x)
+
+
+def test_field_table_returns_the_points_dtype(emns):
+    """The table returned float64 for float32 points (a float32 Cosserat solve then failed deep in torch) and
+    read list currents as float32; it now computes in float64 and returns the points' dtype, like the exact
+    eMNS, and list currents are float64."""
+    from physics.magnetics.field_table import CoilFieldTable
+    table = CoilFieldTable.from_emns(emns, radius=0.03, spacing=2e-3, order=2)
+    x = torch.tensor([[0.01, -0.005, 0.002], [0.0, 0.0, -0.01]], dtype=F64)
+    I = [2.0, -1.0, 0.1, 1.0, 0.3, -2.0]
+    B, dB = table.field_and_gradient(x, torch.tensor(I, dtype=F64))
+    B32, dB32 = table.field_and_gradient(x.float(), I)
+    beta32, grad32 = table.unit_field_and_gradient(x.float())
+    assert B32.dtype == dB32.dtype == beta32.dtype == grad32.dtype == table.field(x.float(), I).dtype == torch.float32
+    assert torch.allclose(B32.double(), B, rtol=1e-6, atol=0) and torch.allclose(dB32.double(), dB, rtol=1e-5, atol=0)
+    Bl, dBl = table.field_and_gradient(x, I)  # list currents in float64: no float32 rounding of 0.1 and 0.3
+    assert Bl.dtype == torch.float64 and torch.equal(Bl, B) and torch.equal(dBl, dB)
+
+
+def test_allocation_checks_its_weights_and_tol(emns):
+    """Per-point weights (P, 3) raised a bare expand error and tol = -1 or NaN made every allocation infeasible;
+    weights (..., P, k) now weight each point's rows, a weight of another shape is refused naming it, and tol
+    must be finite and >= 0."""
+    pts = torch.cat([OFF, -OFF])
+    field = torch.tensor([[5e-3, 0.0, 1e-3], [0.0, -2e-3, 4e-3]], dtype=F64)
+    al = emns.allocate(pts, field=field, field_weight=torch.ones(2, 3))
+    assert torch.allclose(al.currents, emns.allocate(pts, field=field).currents, rtol=1e-12, atol=1e-12)
+    w = torch.tensor([[1.0, 2.0, 3.0], [10.0, 0.5, 1.0]], dtype=F64)
+    al = emns.allocate(pts, field=field, field_weight=w, regularization=0.05)
+    A = emns.actuation_matrix(pts)[..., :3, :].flatten(0, 1)
+    want, _ = allocate_currents(A, field.flatten(), weights=w.flatten(), regularization=0.05)
+    assert torch.allclose(al.currents, want, rtol=1e-12, atol=1e-12)
+    assert float((al.residual_norm - (w.flatten() * al.residual).norm()).abs()) < 1e-12 * float(al.residual_norm)
+    for bad, match in ((torch.ones(3, 3), r"field_weight of shape \(3, 3\) does not broadcast"),
+                       (torch.ones(2, 4), r"field_weight must be a scalar, one weight per row \(3,\)"),
+                       (torch.ones(2, 2, 3), "field_weight of shape")):
+        with pytest.raises(ValueError, match=match):
+            emns.allocate(pts, field=field, field_weight=bad)
+    with pytest.raises(ValueError, match="gradient_weight"):
+        emns.allocate(pts, gradient=torch.zeros(2, 5, dtype=F64), gradient_weight=torch.ones(2, 3))
+    with pytest.raises(ValueError, match="force_weight"):
+        emns.allocate(OFF, force=torch.zeros(1, 3, dtype=F64), moment=torch.ones(1, 3, dtype=F64),
+                      force_weight=torch.tensor([1.0, 0.0, 1.0]))
+    for tol in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="tol must be a finite"):
+            emns.allocate(OFF, field=field[:1], tol=tol)
+    assert bool(emns.allocate(OFF, field=field[:1], tol=0.0).residual_norm >= 0)
+
+
 def test_batched_requests_and_two_points(emns):
     g = torch.Generator().manual_seed(1)
     pts = torch.cat([OFF, -OFF])

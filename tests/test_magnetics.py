@@ -183,6 +183,50 @@ def test_singular_distance_raises_or_is_softened():
             dipole_field(far, m, **kw)
 
 
+def test_softening_keeps_min_distance():
+    """softening > 0 switched min_distance off: a point 0.1 mm from a dipole with min_distance = 1 mm gave a 0.2 MT
+    field; min_distance now applies to the true (unsoftened) distance, for the dipole functions and a dipole set,
+    and softening alone still allows a point at the dipole."""
+    m = torch.tensor([0.0, 0.0, 1.0], dtype=D)
+    d = torch.tensor([0.0, 0.0, 1e-4], dtype=D)
+    kw = dict(softening=1e-6, min_distance=1e-3)
+    for fn in (lambda: dipole_field(d, m, **kw), lambda: dipole_field_gradient(d, m, **kw),
+               lambda: dipole_dipole_force(d, m, m, **kw),
+               lambda: DipoleSet(torch.zeros(1, 3, dtype=D), m[None], **kw).field(d[None]),
+               lambda: DipoleSet(torch.zeros(1, 3, dtype=D), m[None], **kw).field_and_gradient(d[None]),
+               lambda: DipoleSet(torch.zeros(1, 3, dtype=D), m[None], **kw).force_torque(d[None], m[None])):
+        with pytest.raises(ValueError, match="min_distance"):
+            fn()
+    far = torch.tensor([[0.0, 0.002, 0.001]], dtype=D)  # beyond min_distance: the softened field
+    got = DipoleSet(torch.zeros(1, 3, dtype=D), m[None], softening=1e-4, min_distance=1e-3).field(far)
+    assert torch.allclose(got, dipole_field(far, m, softening=1e-4), rtol=1e-12, atol=0)
+    assert not torch.allclose(got, dipole_field(far, m), rtol=1e-6, atol=0)
+    at = torch.zeros(1, 3, dtype=D)  # at the dipole
+    assert torch.isfinite(DipoleSet(at, m[None], softening=1e-3).field(at)).all()
+
+
+def test_a_moved_magnet_needs_a_proper_rotation():
+    """MagnetField.transformed accepted 2 I (the dipoles moved twice as far and their moments doubled) and a
+    reflection; R must now be a rotation to its dtype's precision (float32 rotations pass), batched too."""
+    model = CuboidMagnet(polarization=(0, 0, 1.2), dimensions=(0.01, 0.01, 0.01)).field_model(27)
+    zero = torch.zeros(3, dtype=D)
+    for bad in (2 * torch.eye(3, dtype=D), torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=D)),
+                torch.eye(3, dtype=D) + 1e-6, torch.stack([torch.eye(3, dtype=D), 2 * torch.eye(3, dtype=D)])):
+        with pytest.raises(ValueError, match="R must be a proper rotation matrix"):
+            model.transformed(bad, zero)
+    with pytest.raises(ValueError, match=r"R must be a finite rotation matrix \(\.\.\., 3, 3\)"):
+        model.transformed(torch.eye(2, dtype=D), zero)
+    with pytest.raises(ValueError, match="p must be a finite translation"):
+        model.transformed(torch.eye(3, dtype=D), torch.zeros(2, dtype=D))
+    W = torch.tensor([[0, -0.3, 0.2], [0.3, 0, -0.1], [-0.2, 0.1, 0]])
+    R32 = torch.linalg.matrix_exp(W)  # float32: orthonormal to ~1e-6 only
+    pt = torch.tensor([[0.0, 0.0, 0.05]], dtype=D)
+    B = model.transformed(R32, zero).field(pt)
+    assert torch.allclose(B, model.transformed(torch.linalg.matrix_exp(W.double()), zero).field(pt), rtol=1e-5)
+    Rb = torch.stack([torch.eye(3, dtype=D), torch.linalg.matrix_exp(W.double())])
+    assert model.transformed(Rb, torch.zeros(2, 3, dtype=D)).field(pt).shape == (2, 1, 3)
+
+
 def test_moment_from_remanence_and_sphere_is_exact():
     V = 4 * math.pi * 1e-9
     assert moment_from_remanence(1.0, V) == pytest.approx(V / MU0)

@@ -156,22 +156,54 @@ def loop_field_per_amp(points: Tensor, centres: Tensor, axes: Tensor, radii: Ten
     ``centres``/``axes`` (L, 3) (axes need not be normalised), ``radii`` (L,). Without ``weights``
     returns B (..., P, L, 3) and, if ``gradient``, dB (..., P, L, 3, 3) (else None). With a
     ``weights`` matrix (L, C) (turns of loop l in coil c) the loops are summed into C coils:
-    B (..., P, C, 3), dB (..., P, C, 3, 3).
+    B (..., P, C, 3), dB (..., P, C, 3, 3). ``min_distance`` (m, finite, >= 0): a point this close to a wire raises.
     """
     check_points(points)
+    try:
+        md = math.nan if isinstance(min_distance, bool) else float(min_distance)
+    except (TypeError, ValueError):
+        md = math.nan
+    if not (math.isfinite(md) and md >= 0):  # NaN was refused as "the point is on the wire"
+        raise ValueError(f"min_distance must be a finite distance >= 0 (m), got {min_distance!r}")
     kw = dict(dtype=points.dtype, device=points.device)
     c, n, a = (torch.as_tensor(x, **kw) for x in (centres, axes, radii))
-    if not bool((torch.isfinite(a) & (a > 0)).all() & (n.norm(dim=-1) > 0).all() & torch.isfinite(c).all()):
-        raise ValueError("radii must be finite and > 0, axes non-zero and centres finite")
+    L = a.shape[0] if a.dim() == 1 else -1
+    if a.dim() != 1 or c.shape != (L, 3) or n.shape != (L, 3):
+        raise ValueError(f"centres and axes must have shape (L, 3) and radii (L,) for L loops, got centres "
+                         f"{tuple(c.shape)}, axes {tuple(n.shape)} and radii {tuple(a.shape)}")
+    W = None if weights is None else torch.as_tensor(weights, **kw)
+    if W is not None and (W.dim() != 2 or W.shape[0] != L):
+        raise ValueError(f"weights must have shape (L, C) = ({L}, C) (the turns of loop l in coil c), got "
+                         f"{tuple(W.shape)}")
+    ok = torch.isfinite(a) & (a > 0)
+    if not bool(ok.all() & (n.norm(dim=-1) > 0).all() & torch.isfinite(c).all()
+                & (True if W is None else torch.isfinite(W).all())):
+        raise ValueError("radii must be finite and > 0, axes non-zero, centres finite and weights finite")
     n = n / n.norm(dim=-1, keepdim=True)
     d = points[..., :, None, :] - c
-    n_iter = _check_wire(d, n, a, min_distance)
+    n_iter = _check_wire(d, n, a, md)
     B, dB = _loop_core(d, n, a, n_iter, gradient)
-    if weights is not None:
-        W = torch.as_tensor(weights, **kw)
+    if W is not None:
         B = torch.einsum("...lk,lc->...ck", B, W)
         dB = None if dB is None else torch.einsum("...lij,lc->...cij", dB, W)
     return B, dB
+
+
+def check_current_batch(points: Tensor, currents: Tensor, name: str = "currents") -> None:
+    """Raise ``ValueError`` unless ``currents`` (..., C) line up with field ``points`` (..., P, 3): currents with batch
+    dims need points with batch dims too, which broadcast against the currents' (the points' all but the last two),
+    except a single point (1, 3), the same for every member (the Cosserat solver probes a field so). Points (T, 3)
+    with currents (T, C) gave a (T, T, 3) field, every frame's currents at every frame's point. Shapes only (no
+    tensor values are read), so it runs in traced programs too."""
+    cb, pb = currents.shape[:-1], points.shape[:-2]
+    if len(cb) and points.dim() < 3 and points.shape[:-1] != (1,):
+        raise ValueError(f"{name} of shape {tuple(currents.shape)} are a batch, but points {tuple(points.shape)} have "
+                         "no batch dims: give points (..., P, 3) for a batch of currents (..., C), e.g. points "
+                         f"(T, 1, 3) for one point per batch member or (1, P, 3) for the same points in every member")
+    if not all(x == y or x == 1 or y == 1 for x, y in zip(reversed(cb), reversed(pb))):
+        raise ValueError(f"{name} of shape {tuple(currents.shape)} do not line up with points of shape "
+                         f"{tuple(points.shape)}: the currents' batch dims {tuple(cb)} must broadcast against the "
+                         f"points' {tuple(pb)} (points (..., P, 3), currents (..., C))")
 
 
 def loop_on_axis_field(z, radius: float, current: float = 1.0, turns: float = 1.0):
@@ -241,12 +273,14 @@ class CircularLoop(_LoopSet):
 @dataclass(frozen=True)
 class Coil(CircularLoop):
     """A multi-turn coil with a rectangular winding pack (mean ``radius``, axial ``length``, radial
-    ``thickness``) as ``n_axial x n_radial`` Gauss-Legendre loops (module docstring). Defaults: a thin coil."""
+    ``thickness``) as ``n_axial x n_radial`` Gauss-Legendre loops (module docstring). Defaults: a thin coil.
+    A coil with a ``length`` needs ``n_axial`` and one with a ``thickness`` ``n_radial`` (no default: one loop
+    would model the pack as a thin coil, which near the coil is tens of % off); ``None`` means 1, for no extent."""
 
     length: float = 0.0
     thickness: float = 0.0
-    n_axial: int = 1
-    n_radial: int = 1
+    n_axial: int | None = None
+    n_radial: int | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -255,15 +289,22 @@ class Coil(CircularLoop):
                 raise ValueError(f"Coil.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.thickness >= 2 * self.radius:
             raise ValueError(f"Coil.thickness must be < 2 radius (inner radius > 0), got {self.thickness!r}")
-        for name in ("n_axial", "n_radial"):
+        for name, extent, along in (("n_axial", "length", "along"), ("n_radial", "thickness", "across")):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            if v is None:  # kept None (not 1): a copy with another extent (dataclasses.replace) is checked again
+                if getattr(self, extent) > 0:
+                    raise ValueError(f"Coil.{name} must be given for a coil of {extent} {getattr(self, extent)!r} m: "
+                                     f"the number of Gauss-Legendre loops {along} the winding pack's {extent} "
+                                     "(six_coil_emns uses n_axial=6, n_radial=4; 1 is one loop in the pack's middle)")
+                continue
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"Coil.{name} must be an integer >= 1, got {v!r}")
+            object.__setattr__(self, name, int(v))
 
     def loops(self):
         f64 = dict(dtype=torch.float64)
-        xa, wa = (torch.as_tensor(v, **f64) for v in np.polynomial.legendre.leggauss(self.n_axial))
-        xr, wr = (torch.as_tensor(v, **f64) for v in np.polynomial.legendre.leggauss(self.n_radial))
+        xa, wa = (torch.as_tensor(v, **f64) for v in np.polynomial.legendre.leggauss(self.n_axial or 1))
+        xr, wr = (torch.as_tensor(v, **f64) for v in np.polynomial.legendre.leggauss(self.n_radial or 1))
         s, r = torch.meshgrid(0.5 * self.length * xa, self.radius + 0.5 * self.thickness * xr, indexing="ij")
         axis, centre = torch.tensor(self.axis, **f64), torch.tensor(self.centre, **f64)
         L = s.numel()
@@ -327,7 +368,8 @@ class NestedHelmholtz(FieldModel):
         return B, (torch.stack([o[1] for o in outs], -3) if gradient else None)
 
     def field_and_gradient(self, points: Tensor, currents: Tensor | None = None):
-        """Field and gradient for ``currents`` (..., 2) (default ``self.currents``), broadcast over points."""
+        """Field and gradient at ``points`` (..., P, 3) for ``currents`` (..., 2) (default ``self.currents``); the
+        currents' batch dims broadcast against the points' (..., all but the last two)."""
         I = self._currents(points, currents)
         B, dB = self.unit_field_and_gradient(points)
         return (B * I[..., None, :, None]).sum(-2), (dB * I[..., None, :, None, None]).sum(-3)
@@ -341,6 +383,7 @@ class NestedHelmholtz(FieldModel):
         I = torch.as_tensor(I, dtype=points.dtype, device=points.device)
         if I.shape[-1:] != (2,) or not bool(torch.isfinite(I).all()):
             raise ValueError(f"currents must be finite with shape (..., 2) (outer, inner), got {tuple(I.shape)}")
+        check_current_batch(points, I)
         return I
 
     def centre_matrix(self) -> Tensor:

@@ -20,6 +20,7 @@ Field of a dipole at displacement ``d`` (from the dipole to the field point), ``
 Singular distances: ``r = 0`` (or below ``min_distance``) raises ``ValueError``; an optional
 ``softening`` length ``eps`` replaces ``r^2`` by ``r^2 + eps^2`` everywhere (a Plummer-type
 regularisation that keeps B bounded by ``~ mu0 m / (4 pi eps^3)`` and is exact for ``r >> eps``).
+With softening, ``r = 0`` is allowed, but a ``min_distance`` > 0 still applies to the true distance ``r``.
 """
 from __future__ import annotations
 
@@ -84,10 +85,9 @@ def _r2(d: Tensor, softening: float, min_distance: float) -> Tensor:
         raise ValueError(f"d (displacements from the dipoles) must have shape (..., 3), got {tuple(d.shape)}")
     check_lengths(softening, min_distance)
     r2 = (d * d).sum(-1)
-    if softening > 0:
-        return r2 + softening * softening
-    check_distances(r2, min_distance)
-    return r2
+    if softening == 0 or min_distance > 0:  # the true distance: softening no longer switches min_distance off
+        check_distances(r2, min_distance)
+    return r2 + softening * softening if softening > 0 else r2
 
 
 def dipole_field(d: Tensor, m: Tensor, *, softening: float = 0.0, min_distance: float = 0.0) -> Tensor:

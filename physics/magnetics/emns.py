@@ -55,7 +55,7 @@ import torch
 from torch import Tensor
 
 from .base import FieldModel, check_points
-from .coils import CircularLoop, Coil, HelmholtzPair, loop_field_per_amp
+from .coils import CircularLoop, Coil, HelmholtzPair, check_current_batch, loop_field_per_amp
 from .dipole import force_map, gradient_to_five
 
 __all__ = ["EMNS", "Allocation", "allocate_currents", "six_coil_emns", "MAX_ENUMERATED_COILS"]
@@ -164,6 +164,11 @@ def allocate_currents(A: Tensor, y: Tensor, *, weights: Tensor | None = None, re
     return I.to(A.dtype), at_limit
 
 
+def _expands_to(shape, target) -> bool:
+    """Whether a tensor of ``shape`` broadcasts to ``target`` (without growing it)."""
+    return len(shape) <= len(target) and all(x in (1, y) for x, y in zip(reversed(shape), reversed(target)))
+
+
 def _coil_loops(coils):
     cs, ns, rs, ws = [], [], [], []
     C = len(coils)
@@ -238,10 +243,12 @@ class EMNS(FieldModel):
         I = self.currents if currents is None else self._check_currents(currents)
         if I is None:
             I = torch.zeros(self.n_coils)
+        check_current_batch(points, I, "currents" if currents is not None else "EMNS.currents")
         return I.to(dtype=points.dtype, device=points.device)[..., None, :]
 
     def field_and_gradient(self, points: Tensor, currents: Tensor | None = None):
-        """B (..., P, 3) and dB (..., P, 3, 3) for ``currents`` (..., C) (default ``self.currents``)."""
+        """B (..., P, 3) and dB (..., P, 3, 3) at ``points`` (..., P, 3) for ``currents`` (..., C) (default
+        ``self.currents``); the currents' batch dims broadcast against the points' (all but the last two)."""
         I = self._I(points, currents)
         B, dB = self.unit_field_and_gradient(points)
         return (B * I[..., None]).sum(-2), (dB * I[..., None, None]).sum(-3)
@@ -257,24 +264,41 @@ class EMNS(FieldModel):
         """Currents for a requested ``field`` (..., P, 3) (T), ``gradient`` terms (..., P, 5) (T/m) and/or
         ``force`` (..., P, 3) (N) on dipoles ``moment`` (..., P, 3) (A m^2) at ``points`` (..., P, 3).
 
-        Rows are stacked per point (field, gradient, force) and weighted by the ``*_weight`` scalars or
-        per-row tensors; ``max_current`` defaults to the system's limits. ``feasible`` is
-        ``residual_norm <= tol * ||w y||`` (the request is met within the limits)."""
+        Rows are stacked per point (field, gradient, force) and weighted by the ``*_weight`` weights (> 0): a
+        scalar, one per row ((3,) for the field, (5,) for the gradient) or one per point and row ((..., P, 3),
+        broadcast against the request like ``field``); ``max_current`` defaults to the system's limits.
+        ``feasible`` is ``residual_norm <= tol * ||w y||`` (the request is met within the limits; ``tol`` >= 0)."""
         check_points(points)
         if field is None and gradient is None and force is None:
             raise ValueError("request at least one of field, gradient or force")
         if (force is None) != (moment is None):
             raise ValueError("force and moment must be given together")
+        try:
+            tol_ok = not isinstance(tol, bool) and math.isfinite(float(tol)) and float(tol) >= 0
+        except (TypeError, ValueError):
+            tol_ok = False
+        if not tol_ok:  # a negative or NaN tol made every allocation infeasible
+            raise ValueError(f"tol must be a finite relative residual >= 0, got {tol!r}")
         A = self.actuation_matrix(points)  # (..., P, 8, C)
         rows, ys, ws = [], [], []
         kw = dict(dtype=points.dtype, device=points.device)
+
+        def weight(name, wt, k):
+            wt = torch.as_tensor(wt, **kw)
+            if wt.dim() and wt.shape[-1] not in (1, k):
+                raise ValueError(f"{name} must be a scalar, one weight per row ({k},) or one per point and row "
+                                 f"(..., P, {k}), got shape {tuple(wt.shape)}")
+            if not bool((torch.isfinite(wt) & (wt > 0)).all()):
+                raise ValueError(f"{name} (the rows' weights) must be finite and > 0")
+            return (name, wt.expand(*wt.shape[:-1], k) if wt.dim() else wt.expand(k))
+
         for name, val, Ar, wt, k in (("field", field, A[..., :3, :], field_weight, 3),
                                      ("gradient", gradient, A[..., 3:, :], gradient_weight, 5)):
             if val is not None:
                 val = torch.as_tensor(val, **kw)
                 if val.shape[-1:] != (k,):
                     raise ValueError(f"{name} must have shape (..., P, {k}), got {tuple(val.shape)}")
-                rows.append(Ar), ys.append(val), ws.append(torch.as_tensor(wt, **kw).expand(k))
+                rows.append(Ar), ys.append(val), ws.append(weight(f"{name}_weight", wt, k))
         if force is not None:
             force, moment = torch.as_tensor(force, **kw), torch.as_tensor(moment, **kw)
             if force.shape[-1:] != (3,) or moment.shape[-1:] != (3,):
@@ -283,11 +307,16 @@ class EMNS(FieldModel):
             if not bool(torch.isfinite(moment).all()):
                 raise ValueError("moment must be finite")
             rows.append(force_map(moment) @ A[..., 3:, :]), ys.append(force)
-            ws.append(torch.as_tensor(force_weight, **kw).expand(3))
+            ws.append(weight("force_weight", force_weight, 3))
         batch = torch.broadcast_shapes(*(r.shape[:-2] for r in rows), *(v.shape[:-1] for v in ys))
+        for name, wt in ws:  # per-point weights follow the request's points; they add no batch of their own
+            if not _expands_to(wt.shape[:-1], batch):
+                raise ValueError(f"{name} of shape {tuple(wt.shape)} does not broadcast against the request's "
+                                 f"(..., P, rows) = {(*batch, wt.shape[-1])}: give one weight per row "
+                                 f"({wt.shape[-1]},) or one per point and row (..., P, {wt.shape[-1]})")
         Ar = torch.cat([r.expand(*batch, *r.shape[-2:]) for r in rows], -2)  # (..., P, R1, C)
         y = torch.cat([v.expand(*batch, v.shape[-1]) for v in ys], -1)
-        w = torch.cat(ws, -1).expand(*batch, Ar.shape[-2])
+        w = torch.cat([wt.expand(*batch, wt.shape[-1]) for _, wt in ws], -1)
         Af, yf, wf = Ar.flatten(-3, -2), y.flatten(-2), w.flatten(-2)
         imax = self.max_current if max_current is None else max_current
         I, at_limit = allocate_currents(Af, yf, weights=wf, regularization=regularization, max_current=imax,

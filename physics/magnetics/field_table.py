@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from .base import FieldModel, check_points
-from .coils import loop_field_per_amp
+from .coils import check_current_batch, loop_field_per_amp
 
 __all__ = ["CoilFieldTable"]
 
@@ -133,9 +133,15 @@ class CoilFieldTable(FieldModel):
     def unit_field_and_gradient(self, points: Tensor, gradient: bool = True, check: bool = True):
         """Unit-current maps ``beta`` (..., P, C, 3) (T/A) and ``beta_grad`` (..., P, C, 3, 3) (T/(m A)) at
         ``points`` (..., P, 3) in the tabulated ball (``check``: raise for a point outside; pass False in
-        programs compiled ahead of time, which check :meth:`outside` themselves). Computed in float64. The maps'
-        values hold on a coil's axis too, but not autograd through ``beta_grad`` there (the tabulated rho f_z and
-        g_rho multiply the undefined radial direction); the exact coils' gradient is differentiable everywhere."""
+        programs compiled ahead of time, which check :meth:`outside` themselves). Computed in float64 and returned
+        in the points' dtype, as the exact eMNS. The maps' values hold on a coil's axis too, but not autograd
+        through ``beta_grad`` there (the tabulated rho f_z and g_rho multiply the undefined radial direction); the
+        exact coils' gradient is differentiable everywhere."""
+        beta, grad = self._maps(points, gradient, check)
+        return beta.to(points.dtype), (None if grad is None else grad.to(points.dtype))
+
+    def _maps(self, points: Tensor, gradient: bool, check: bool):
+        """:meth:`unit_field_and_gradient` in float64."""
         if check:
             check_points(points)
             bad = self.outside(points)
@@ -177,21 +183,25 @@ class CoilFieldTable(FieldModel):
         return ((w[..., 0, :, None] * w[..., 1, None, :]).flatten(-2)[..., None, :] @ vals)[..., 0, :]
 
     def _I(self, points: Tensor, currents, check: bool = True) -> Tensor:
-        I = self.currents if currents is None else torch.as_tensor(currents)
+        I = self.currents if currents is None else currents
         if I is None:
             I = torch.zeros(self.n_coils)
+        I = I if isinstance(I, Tensor) else torch.as_tensor(I, dtype=_F64)  # a list: float64, not the default dtype
         if I.shape[-1:] != (self.n_coils,):
             raise ValueError(f"currents must have shape (..., {self.n_coils}), got {tuple(I.shape)}")
+        check_current_batch(points, I)  # shapes only: also unchecked (check=False, compiled programs)
         if check and not bool(torch.isfinite(I).all()):
             raise ValueError("currents must be finite")
         return I.to(_F64)[..., None, :]
 
     def field_and_gradient(self, points: Tensor, currents: Tensor | None = None, check: bool = True):
-        """B (..., P, 3) and dB (..., P, 3, 3) (float64) for ``currents`` (..., C) (default: the eMNS's)."""
+        """B (..., P, 3) and dB (..., P, 3, 3) at ``points`` (..., P, 3) for ``currents`` (..., C) (default: the
+        eMNS's; their batch dims broadcast against the points' (all but the last two)), computed in float64 and
+        returned in the points' dtype."""
         I = self._I(points, currents, check)
-        beta, grad = self.unit_field_and_gradient(points, check=check)
-        return (beta * I[..., None]).sum(-2), (grad * I[..., None, None]).sum(-3)
+        beta, grad = self._maps(points, True, check)
+        return (beta * I[..., None]).sum(-2).to(points.dtype), (grad * I[..., None, None]).sum(-3).to(points.dtype)
 
     def field(self, points: Tensor, currents: Tensor | None = None) -> Tensor:
         I = self._I(points, currents)
-        return (self.unit_field_and_gradient(points, gradient=False)[0] * I[..., None]).sum(-2)
+        return (self._maps(points, False, True)[0] * I[..., None]).sum(-2).to(points.dtype)

@@ -28,8 +28,9 @@ _CHUNK_ELEMENTS = 1 << 16  # (points x sources) per chunk: keeps the (P, S) temp
 class DipoleSet(FieldModel):
     """S point dipoles at ``positions`` (..., S, 3) with ``moments`` (..., S, 3) (A m^2).
 
-    ``softening`` (m) regularises ``r^2 -> r^2 + eps^2``; without it a field point closer than
-    ``min_distance`` to a dipole raises ``ValueError`` (see :mod:`physics.magnetics.dipole`).
+    ``softening`` (m) regularises ``r^2 -> r^2 + eps^2``; a field point closer than ``min_distance`` to a
+    dipole (the true distance, softened or not) raises ``ValueError``, and without softening one at a dipole
+    (see :mod:`physics.magnetics.dipole`).
     """
 
     def __init__(self, positions: Tensor, moments: Tensor, *, softening: float = 0.0, min_distance: float = 0.0):
@@ -84,6 +85,8 @@ class DipoleSet(FieldModel):
         r2 = X @ torch.cat([-2 * s, one_s, s2], -1).transpose(-1, -2)
         if self.softening == 0:
             check_distances(r2, self.min_distance)
+        elif self.min_distance > 0:  # on the true distance: softening no longer switches min_distance off
+            check_distances(r2 - self.softening ** 2, self.min_distance)
         md = torch.cat([x, one_x], -1) @ torch.cat([m, -(s * m).sum(-1, keepdim=True)], -1).transpose(-1, -2)
         inv_r = torch.rsqrt(r2)
         inv_r2 = inv_r * inv_r
