@@ -11,7 +11,6 @@ Example: the uniform field that turns a tip-magnet rod's tip to a target angle::
 from __future__ import annotations
 
 import math
-import numbers
 from typing import NamedTuple
 
 import torch
@@ -20,6 +19,7 @@ from torch import Tensor
 from .cosserat import check_integer
 from .cosserat_shooting import CosseratSolver, StaticSolution
 from .loads import UniformField
+from .magnetics.validate import positive, real
 
 __all__ = ["FieldFit", "fit_uniform_field", "tip_angle"]
 
@@ -66,10 +66,11 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
         raise ValueError(f"magnitude (the start's field strength, T) must be finite and > 0, got {magnitude!r}")
     check_integer("max_evals", max_evals)
     # a negative reg rewarded a stronger field (loss -1), a NaN angle_tol reached nothing
-    for name, v, ok, rule in (("reg", reg, lambda x: x >= 0, " and >= 0"), ("angle_tol", angle_tol, lambda x: x > 0, " and > 0"),
-                              ("field_angle", 0.0 if field_angle is None else field_angle, lambda x: True, "")):
-        if not (isinstance(v, numbers.Real) and math.isfinite(v) and ok(v)):
-            raise ValueError(f"{name} must be finite{rule}, got {v!r}")
+    if real("reg", reg) < 0:
+        raise ValueError(f"reg must be finite and >= 0, got {reg!r}")
+    positive("angle_tol", angle_tol)
+    if field_angle is not None:
+        real("field_angle", field_angle)
     kw = dict(dtype=solver.dtype, device=solver.device)
     mu = max(math.sqrt(sum(c * c for c in m.moment)) for m in rod.magnets[-1:])
     b_ref = magnitude if magnitude is not None else max(rod.bending_scale * abs(target_angle) / (rod.length * mu), 1e-6)

@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
-from .lie import mtm3, mtv3, mv3
+from .lie import check_rotations, mtm3, mtv3, mv3
 from .loads import Loads, magnet_node_loads, magnet_positions
 from .programs import compile_program, tracing
 from .rod import Rod, RodParams
@@ -211,7 +211,7 @@ class LGVI:
             raise ValueError(f"Loads.gravity must be a finite 3-vector (m/s^2), got {self.loads.gravity!r}")
         if self.loads.field is not None and self.params.magnet_elem.numel() == 0:
             raise ValueError("Loads.field: this rod has no magnets for the field to act on (it would be ignored)")
-        self._has_magnets = self.params.magnet_elem.numel() > 0 and self.loads.field is not None
+        self._has_magnets = self.loads.field is not None  # a rod with magnets (checked above)
         for name in ("force", "torque"):
             if torch.is_tensor(getattr(self.loads, name)):
                 self._check_node_load(name, getattr(self.loads, name))
@@ -240,10 +240,7 @@ class LGVI:
             raise ValueError(f"initial_state: R must be (..., {n}, 3, 3), got {tuple(R.shape)}")
         if not (torch.isfinite(p).all() and torch.isfinite(R).all()):
             raise ValueError("initial_state: p and R must be finite")
-        orth = (R.transpose(-1, -2) @ R - torch.eye(3, **kw)).abs().amax()
-        tol = 1e-9 if self.dtype == torch.float64 else 1e-4
-        if float(orth) > tol or bool((torch.linalg.det(R) <= 0).any()):
-            raise ValueError(f"initial_state: R must be proper rotations (max |R^T R - I| = {float(orth):.2e})")
+        check_rotations(R, "initial_state: R")
         p = torch.broadcast_tensors(p[..., None], R)[0][..., 0]
         for name, x in (("v", v), ("omega", omega)):
             if x is not None and not bool(torch.isfinite(torch.as_tensor(x, **kw)).all()):

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
-from .lie import so3_exp
+from .lie import check_rotations, so3_exp
 from .loads import UniformField, magnet_node_loads, magnet_poses
 from .rod import Rod
 
@@ -42,10 +42,7 @@ def _check_inputs(n: int, p0, R0, gravity, field, tol, rounds) -> None:
     if not torch.is_tensor(R0) or R0.shape != (n, 3, 3) or not bool(torch.isfinite(R0).all()):
         bad("R0", f"finite node rotations ({n}, 3, 3) for this rod, got "
                   f"{tuple(R0.shape) if torch.is_tensor(R0) else type(R0).__name__}")
-    R = R0.to(torch.float64)
-    orth = float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=torch.float64)).abs().amax())
-    if orth > (1e-9 if R0.dtype == torch.float64 else 1e-5) or bool((torch.linalg.det(R) <= 0).any()):
-        bad("R0", f"proper rotations (max |R^T R - I| = {orth:.2e})")
+    check_rotations(R0, "static_equilibrium: R0")
     for name, x, unit in (("gravity", gravity, "m/s^2"), ("field", field, "T")):
         if x is not None:
             x = torch.as_tensor(x, dtype=torch.float64)

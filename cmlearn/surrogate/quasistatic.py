@@ -64,13 +64,15 @@ def scene_track(task, scene, n_frames: int, cache: str | Path | None = None, cur
 
 
 def profile_tracks(task, scene, positions: Tensor, R_rest: Tensor, cache: str | Path | None = None,
-                   currents=None, truncate: bool = False):
+                   currents=None, truncate: bool = False, track: StaticTrack | None = None):
     """Static states ``s`` (..., T, 13: with the margin) and deviations ``d`` (..., T, 12) of a scene's LGVI runs
     ``positions`` (..., T, n_tracked, 3) at frames k delta, and the :class:`StaticTrack`; the track cached at
     ``cache`` if given.
     ``currents``: a batch of profiles ``currents(t) -> (V, C)`` instead of the scene's own; ``truncate``: a
-    profile whose static track ends at a fold is NaN from there (:func:`static_track`) instead of an error."""
-    track = scene_track(task, scene, positions.shape[-3], cache, currents, truncate)
+    profile whose static track ends at a fold is NaN from there (:func:`static_track`) instead of an error;
+    ``track``: the track where already solved."""
+    if track is None:
+        track = scene_track(task, scene, positions.shape[-3], cache, currents, truncate)
     c, Rl, _ = magnet_frames(task, scene.rod, positions.double())
     return static_state(track.P, track.R, R_rest, track.margin), deviation(c, Rl, track.P, track.R), track
 
@@ -186,18 +188,15 @@ class QuasiStaticSurrogate:
                                  f"{tuple(positions.shape)}")
         elif start:
             raise ValueError("a start after rest needs the LGVI's positions for its history")
-        if track is None:
-            track = scene_track(self.task, scene, T, cache)
-        elif not (isinstance(track, StaticTrack) and track.P.shape[:2] == (T, 2)):
+        if track is not None and not (isinstance(track, StaticTrack) and track.P.shape[:2] == (T, 2)):
             raise ValueError(f"track must be the scene's StaticTrack at its {T} frames (P ({T}, 2, 3)), got "
                              f"{tuple(track.P.shape) if isinstance(track, StaticTrack) else type(track).__name__}")
-        P, R = track.P, track.R
-        s = static_state(P, R, self.rest, track.margin)
         if positions is None:
-            d = torch.zeros(P.shape[0], 12, dtype=torch.float64)
+            track = scene_track(self.task, scene, T, cache) if track is None else track
+            s, d = static_state(track.P, track.R, self.rest, track.margin), torch.zeros(T, 12, dtype=torch.float64)
         else:
-            c, Rl, _ = magnet_frames(self.task, scene.rod, positions.double())
-            d = deviation(c, Rl, P, R)
+            s, d, track = profile_tracks(self.task, scene, positions, self.rest, cache, track=track)
+        P, R = track.P, track.R
         dev = rollout_from(self.model, s, d, start)
         cp, Rp = compose(dev, P[start + 1:], R[start + 1:])
         return cp, Rp, P[start + 1:], R[start + 1:]
