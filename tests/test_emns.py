@@ -268,6 +268,10 @@ def test_bad_input(emns):
         emns.allocate(OFF, field=torch.zeros(1, 3, dtype=F64), method="magic")
     with pytest.raises(ValueError, match="finite"):
         emns.allocate(OFF, field=torch.tensor([[math.inf, 0, 0]], dtype=F64))
+    A_nan = torch.eye(3, dtype=F64)
+    A_nan[0, 0] = math.nan  # numpy's LinAlgError ("SVD did not converge") came out of the solve
+    with pytest.raises(ValueError, match=r"A \(the actuation matrix\) must be finite"):
+        allocate_currents(A_nan, torch.ones(3, dtype=F64))
     c, n, r, _ = emns.coils[0].loops()
     e = torch.linalg.cross(n[0], torch.tensor([0.0, 0.0, 1.0], dtype=F64))
     on_wire = (c[0] + r[0] * e / e.norm())[None]

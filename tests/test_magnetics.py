@@ -319,6 +319,9 @@ def test_bad_input_is_rejected_with_the_parameter_name():
         UniformField([0.0, float("nan"), 0.0])
     with pytest.raises(ValueError, match="count"):
         CuboidMagnet(dimensions=(0.01, 0.01, 0.01)).dipoles(0)
+    for magnet in (CuboidMagnet(dimensions=(0.01, 0.01, 0.01)), CylinderMagnet(diameter=0.01, height=0.01)):
+        with pytest.raises(ValueError, match=r"count must be an integer >= 1, got 2.9"):  # it ran as 2
+            magnet.dipoles(2.9)
 
 
 def test_uniform_field_batches_over_members_and_refuses_integer_points():

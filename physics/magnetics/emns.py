@@ -140,6 +140,8 @@ def allocate_currents(A: Tensor, y: Tensor, *, weights: Tensor | None = None, re
         raise ValueError(f"regularization must be finite and >= 0, got {regularization!r}")
     C = A.shape[-1]
     w = torch.ones_like(y) if weights is None else torch.as_tensor(weights, dtype=A.dtype, device=A.device)
+    if not bool(torch.isfinite(A).all()):
+        raise ValueError("A (the actuation matrix) must be finite")
     if not bool(torch.isfinite(y).all()):
         raise ValueError("the requested values must be finite")
     if not bool((torch.isfinite(w) & (w > 0)).all()):

@@ -23,7 +23,7 @@ from torch import Tensor
 from .base import FieldModel, check_points
 from .dipole import MU0
 from .sources import DipoleSet
-from .validate import positive as _positive, rotation as _rotation, vec3 as _vec3
+from .validate import integer as _integer, positive as _positive, rotation as _rotation, vec3 as _vec3
 
 __all__ = ["CuboidMagnet", "CylinderMagnet", "SphereMagnet", "MagnetField"]
 
@@ -63,7 +63,7 @@ class _Magnet(ABC):
 
     def dipoles(self, count: int = 2000, dtype=torch.float64, device=None) -> DipoleSet:
         """The magnet as about ``count`` point dipoles (world frame)."""
-        cells, vol = self._cells(int(count))
+        cells, vol = self._cells(_integer("count", count))
         J = torch.tensor(self.polarization, dtype=torch.float64)
         local = DipoleSet(cells, (vol / MU0)[:, None] * J)
         R = torch.tensor(self.orientation, dtype=torch.float64)
@@ -99,9 +99,7 @@ class CuboidMagnet(_Magnet):
 
     def grid(self, count: int) -> tuple[int, int, int]:
         """Cells per axis, proportional to the edges, with a product close to ``count``."""
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count}")
-        h = (self.volume / count) ** (1 / 3)
+        h = (self.volume / _integer("count", count)) ** (1 / 3)
         return tuple(max(1, round(d / h)) for d in self.dimensions)
 
     def _cells(self, count):
@@ -134,8 +132,6 @@ class CylinderMagnet(_Magnet):
     def _cells(self, count):
         """Layers along z; in each, rings of equal width split into near-square annular sectors; each
         dipole sits at its sector's centroid and carries that sector's volume."""
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count}")
         R = self.diameter / 2
         h = (self.volume / count) ** (1 / 3)
         n_z = max(1, round(self.height / h))

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
 
-__all__ = ["real", "positive", "vec3", "rotation"]
+__all__ = ["real", "positive", "integer", "vec3", "rotation"]
 
 
 def real(name, v, positive=False) -> float:
@@ -20,6 +21,13 @@ def real(name, v, positive=False) -> float:
 
 def positive(name, v) -> float:
     return real(name, v, positive=True)
+
+
+def integer(name, v, lo: int = 1) -> int:
+    """``v`` as an int; ``ValueError`` naming ``name`` unless it is a whole number >= ``lo`` (2.9 is not 2)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or int(v) != v or v < lo:
+        raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+    return int(v)
 
 
 def vec3(name, v, nonzero=False) -> tuple:
