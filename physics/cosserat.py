@@ -33,25 +33,18 @@ Levenberg-Marquardt shooting in :mod:`physics.cosserat_shooting`, the compiled f
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from .checks import check_integer
 from .rod import CircularSection, Material, SquareSection, finite_vector
 
 __all__ = ["Segment", "MagnetDipole", "CosseratRod", "CosseratParams", "CosseratGrid", "StaticLoads", "broadcast_shape"]
 
 _MERGE = 1e-9  # relative distance under which two breakpoints are the same node
-
-
-def check_integer(name: str, v, lo: int = 1) -> int:
-    """``v`` as an int; ``ValueError`` naming ``name`` unless it is a whole number >= ``lo`` (not NaN, inf, None)."""
-    if not (isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and int(v) == v and v >= lo):
-        raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-    return int(v)
 
 
 @dataclass(frozen=True)

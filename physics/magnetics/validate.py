@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 from torch import Tensor
+
+from ..checks import check_integer as integer
 
 __all__ = ["real", "positive", "integer", "vec3", "rotation"]
 
@@ -21,13 +22,6 @@ def real(name, v, positive=False) -> float:
 
 def positive(name, v) -> float:
     return real(name, v, positive=True)
-
-
-def integer(name, v, lo: int = 1) -> int:
-    """``v`` as an int; ``ValueError`` naming ``name`` unless it is a whole number >= ``lo`` (2.9 is not 2)."""
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or int(v) != v or v < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-    return int(v)
 
 
 def vec3(name, v, nonzero=False) -> tuple:
