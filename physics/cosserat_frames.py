@@ -33,7 +33,8 @@ class FrameSolve:
     one load step of at most ``max_iter`` iterations (default the solver's) from ``init`` (a
     :class:`~physics.cosserat_shooting.StaticSolution` or base wrench (..., 6) in SI), first chord iterations with
     ``chord`` (a nearby solution's scaled Jacobian (..., 6, 6)) where given (module docstring). ``loads``: keywords
-    of :meth:`~physics.cosserat_shooting.CosseratSolver.make_loads`, fixed for every frame. ``compiled=False`` runs
+    of :meth:`~physics.cosserat_shooting.CosseratSolver.make_loads` (or ``loads=`` a whole
+    :class:`~physics.cosserat.StaticLoads`), fixed for every frame. ``compiled=False`` runs
     the same programs eagerly (tests)."""
 
     def __init__(self, solver: CosseratSolver, *, max_iter: int | None = None, t: float = 0.0, compiled: bool = True,
@@ -43,7 +44,13 @@ class FrameSolve:
         max_iter = check_integer("max_iter", solver.max_iter if max_iter is None else max_iter)
         self.solver, self.max_iter, self.t, self.load_kw = solver, max_iter, float(t), loads
         self.compiled = bool(compiled)
-        self._loads = solver._loads(dict(loads))  # checked once (make_loads)
+        if "loads" in loads:  # whole StaticLoads, as solve(loads=...) takes them (make_loads refused the keyword)
+            if len(loads) > 1:
+                raise ValueError(f"give the loads either as loads= or as keywords, not both (got loads= and "
+                                 f"{', '.join(sorted(k for k in loads if k != 'loads'))}=)")
+            self._loads = solver._check_loads(loads["loads"])
+        else:
+            self._loads = solver._loads(dict(loads))  # checked once (make_loads)
         self._fkey = None  # the field structure, shapes and solver parameters the programs below were set up for
         self._fprm = None
         self._chord = self._lm = None
@@ -54,7 +61,8 @@ class FrameSolve:
         if flat is None or _needs_grad(tuple(self._loads), tuple(solver.params), field, *flat[1]):
             return self._solve(field, init, chord)  # (which adds the implicit gradients)
         w = init.base_wrench if isinstance(init, StaticSolution) else init
-        if not isinstance(w, Tensor) or w.shape[-1:] != (6,) or (chord is not None and chord.shape[-2:] != (6, 6)):
+        if not isinstance(w, Tensor) or w.shape[-1:] != (6,) or (chord is not None and chord.shape[-2:] != (6, 6)) \
+                or (field is not None and not solver.rod.magnets):
             return self._solve(field, init, chord)  # (which names what is wrong)
         key = flat[0], w.shape, chord is None or chord.shape, tensor_versions(solver.params)
         if (key != self._fkey or self._fprm is not solver.params) and not self._setup(field, flat, w, chord):
@@ -109,3 +117,4 @@ class FrameSolve:
         self._fkey = flat[0], w.shape, chord is None or chord.shape, tensor_versions(self.solver.params)
         self._fprm = self.solver.params
         return True
+

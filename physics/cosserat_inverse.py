@@ -11,6 +11,7 @@ Example: the uniform field that turns a tip-magnet rod's tip to a target angle::
 from __future__ import annotations
 
 import math
+import numbers
 from typing import NamedTuple
 
 import torch
@@ -27,6 +28,10 @@ __all__ = ["FieldFit", "fit_uniform_field", "tip_angle"]
 def tip_angle(sol: StaticSolution, plane: tuple[int, int] = (0, 2)) -> Tensor:
     """Angle (rad) of the tip tangent (body E3 of the tip) in the world plane ``plane`` = (a, b),
     measured from axis b towards axis a (default: in the x-z plane from +z towards +x)."""
+    axes = isinstance(plane, (tuple, list)) and len(plane) == 2 and all(
+        isinstance(a, numbers.Integral) and not isinstance(a, bool) and -3 <= a <= 2 for a in plane)
+    if not (axes and plane[0] % 3 != plane[1] % 3):  # (0, 0) gave 45 deg whatever the shape, (0, 3) an IndexError
+        raise ValueError(f"plane must be two different world axes (a, b) out of 0, 1, 2 (x, y, z), got {plane!r}")
     t = sol.R[..., -1, :, 2]
     return torch.atan2(t[..., plane[0]], t[..., plane[1]])
 
@@ -57,6 +62,8 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
     ...). Each evaluation is warm-started from the previous solution. ``reached`` says whether the returned field
     turns the tip to within ``angle_tol`` (rad) of the target: a fit can end elsewhere (a target beyond what the
     rod's branch from its start reaches) and then says so rather than raise."""
+    if not isinstance(solver, CosseratSolver):
+        raise TypeError(f"solver must be a CosseratSolver, got {type(solver).__name__}")
     rod = solver.rod
     if not rod.magnets:
         raise ValueError("fit_uniform_field: the rod has no magnets")
@@ -72,7 +79,11 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
     if field_angle is not None:
         real("field_angle", field_angle)
     kw = dict(dtype=solver.dtype, device=solver.device)
-    mu = max(math.sqrt(sum(c * c for c in m.moment)) for m in rod.magnets[-1:])
+    if magnitude is None:  # the estimate from the tip-most magnet (the magnets need not be listed base to tip)
+        mu = math.sqrt(sum(c * c for c in max(reversed(rod.magnets), key=lambda m: m.s).moment))
+        if mu == 0:
+            raise ValueError("fit_uniform_field: the rod's tip-most magnet has a zero moment, so there is no estimate "
+                             "of the field strength: give magnitude= (the start's field strength, T)")
     b_ref = magnitude if magnitude is not None else max(rod.bending_scale * abs(target_angle) / (rod.length * mu), 1e-6)
     sgn = 1.0 if target_angle >= 0 else -1.0
     phi0 = target_angle + sgn * math.pi / 2 if field_angle is None else float(field_angle)
@@ -86,6 +97,9 @@ def fit_uniform_field(solver: CosseratSolver, target_angle: float, *, magnitude:
     def closure():
         opt.zero_grad()
         sol = solver.solve(field=UniformField(field_of(u)), init=state["init"], differentiable=True, **solve_kw)
+        if sol.residual.numel() != 1:  # (the loss below is one number; a batch failed in backward())
+            raise ValueError(f"fit_uniform_field fits one problem, but the loads, parameters or init of solve_kw "
+                             f"make a batch of shape {tuple(sol.residual.shape)}")
         state["init"], state["sol"], state["n"] = sol, sol, state["n"] + 1
         loss = ((tip_angle(sol) - target_angle) / deg) ** 2 + reg * u[0] ** 2
         loss.backward()

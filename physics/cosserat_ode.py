@@ -99,6 +99,15 @@ def cosserat_rhs(y: Tensor, ks_inv: Tensor, kb_inv: Tensor, v_hat: Tensor, u_hat
 
 
 # ----------------------------------------------------------------------------------------- field hook
+def _check_dtype(B: Tensor, pos: Tensor) -> None:
+    """A TypeError unless the hook's field ``B`` has the points' dtype (a float32 field in a float64 solve failed in
+    torch with "expected scalar type Double but found Float"; dtype only, so traced programs keep their graph)."""
+    if not isinstance(B, Tensor) or B.dtype != pos.dtype:
+        raise TypeError(f"the field hook field(t, positions) returned B of "
+                        f"{f'dtype {B.dtype}' if isinstance(B, Tensor) else type(B).__name__} for positions of dtype "
+                        f"{pos.dtype} (the solver's): return a tensor of the positions' dtype (e.g. B.to(positions))")
+
+
 def _field_wrench(fld, t, pos: Tensor, mu: Tensor, dpos: Tensor | None, dmu: Tensor | None, h: float):
     """World force and torque (..., 3) of the field on a dipole ``mu`` at ``pos``; with tangents
     (..., D, 3) also their derivatives. Position derivatives of ``B`` (without ``dB``) and of ``dB``
@@ -109,6 +118,7 @@ def _field_wrench(fld, t, pos: Tensor, mu: Tensor, dpos: Tensor | None, dmu: Ten
     if isinstance(fld, UniformField) or (callable(fld) and not tan):
         out = fld(t, pos.unsqueeze(-2))
         B, dB = out if isinstance(out, tuple) else (out, None)
+        _check_dtype(B, pos)
         B = B[..., 0, :].expand_as(mu)
         T = torch.linalg.cross(mu, B, dim=-1)
         F = zero if dB is None else (dB[..., 0, :, :] * mu.unsqueeze(-1)).sum(-2)
@@ -120,6 +130,7 @@ def _field_wrench(fld, t, pos: Tensor, mu: Tensor, dpos: Tensor | None, dmu: Ten
     if callable(fld):
         out = fld(t, torch.cat((P, P + eye, P - eye), -2))
         B, dB = out if isinstance(out, tuple) else (out, None)
+        _check_dtype(B, pos)
         B = B.expand(*mu.shape[:-1], 7, 3)
         B0 = B[..., 0, :]
         if dB is None:

@@ -212,6 +212,9 @@ class CosseratSolver:
             raise ValueError("compile=True needs jacobian='forward'")
         self._step_key, self._step_ver, self._step_tab = None, None, None
         self.steps_per_call = check_integer("steps_per_call", steps_per_call)
+        if self.steps_per_call > 1 and not self.compile:  # (it was ignored: the eager shot takes no steps per call)
+            raise ValueError(f"steps_per_call={self.steps_per_call} (grid steps fused per compiled call) needs "
+                             f"compile=True")
         self._math, step1, chunk = _compiled() if compile else (_lm_math, lane_step, lane_chunk)
         self._lane_step = step1 if self.steps_per_call == 1 else chunk
         self._loads_cache: dict = {}

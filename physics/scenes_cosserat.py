@@ -57,6 +57,11 @@ class LinearField:
                     or not bool(torch.isfinite(v).all()):
                 raise ValueError(f"LinearField.{nm} must be finite with shape {shape}, got shape {tuple(v.shape)}"
                                  f"{'' if bool(torch.isfinite(v).all()) else ' with non-finite values'}")
+        try:  # (a batch of B0 and one of G that do not broadcast failed in torch at the first solve)
+            torch.broadcast_shapes(self.B0.shape[:-1], self.G.shape[:-2])
+        except RuntimeError:
+            raise ValueError(f"LinearField: the batch shapes of B0 {tuple(self.B0.shape)} and G {tuple(self.G.shape)} "
+                             f"do not broadcast") from None
 
     def __call__(self, t, positions: Tensor):
         B0, G = self.B0.to(positions), self.G.to(positions)  # the points' dtype and device
@@ -85,14 +90,25 @@ class CosseratScene:
     def solve(self, solver: CosseratSolver | None = None, **kw) -> StaticSolution:
         """Solve with the scene's gravity and base pose (override them with ``gravity=``,
         ``base_quaternion=``); other keywords go to :meth:`CosseratSolver.solve`."""
-        solver = self.solver() if solver is None else solver
+        solver = self.solver() if solver is None else self._own(solver)
         return solver.solve(**self._posed(kw))
 
     def frame_solve(self, solver: CosseratSolver, **kw):
         """A :class:`~physics.cosserat_frames.FrameSolve` (a real-time loop's repeated solve) with the scene's
         gravity and base pose (override them as in :meth:`solve`); other keywords go to it."""
         from .cosserat_frames import FrameSolve
-        return FrameSolve(solver, **self._posed(kw))
+        return FrameSolve(self._own(solver), **self._posed(kw))
+
+    def _own(self, solver) -> CosseratSolver:
+        """``solver`` unless it is no :class:`CosseratSolver` or one for another rod (that rod was solved, with this
+        scene's gravity and base pose, without a word)."""
+        if not isinstance(solver, CosseratSolver):
+            raise TypeError(f"solver must be a CosseratSolver, got {type(solver).__name__}")
+        if solver.rod is not self.rod and solver.rod != self.rod:
+            raise ValueError(f"solver: it was made for another rod than this scene's ({self.name}; the solver's rod "
+                             f"has n_nodes={solver.rod.n_nodes}, the scene's {self.rod.n_nodes}): make it with "
+                             f"scene.solver()")
+        return solver
 
     def _posed(self, kw: dict) -> dict:
         """``kw`` with the scene's gravity and base pose where it does not give them (nor ``loads=``)."""
