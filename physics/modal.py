@@ -8,6 +8,7 @@ per-element 12x12 Hessians computed with ``torch.func``.
 from __future__ import annotations
 
 import functools
+import numbers
 
 import numpy as np
 import scipy.linalg
@@ -77,14 +78,14 @@ def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elast
     if any(k != 0 for k in getattr(rod, "intrinsic_curvature", (0.0, 0.0, 0.0))):
         raise ValueError("frequencies: the modes are those about the straight rod, and a rod with "
                          f"intrinsic_curvature {tuple(rod.intrinsic_curvature)} is not at rest straight")
-    if isinstance(n_modes, bool) or not (isinstance(n_modes, int) and n_modes >= 1):
+    if isinstance(n_modes, bool) or not (isinstance(n_modes, numbers.Integral) and n_modes >= 1):  # numpy ints too
         raise ValueError(f"frequencies: n_modes must be an integer >= 1, got {n_modes!r}")
     A = _reduced(rod, bc, energy_fn)
     n_rigid = 6 if bc == "free-free" else 0
     if n_modes + n_rigid > A.shape[0]:  # eigh would return fewer modes than asked for
         raise ValueError(f"frequencies: n_modes={n_modes} exceeds the {A.shape[0] - n_rigid} non-rigid modes of "
                          f"this {rod.N}-element rod ({bc})")
-    k = n_modes + n_rigid
+    k = int(n_modes) + n_rigid
     if A.shape[0] <= _DENSE_MAX or k >= A.shape[0]:  # eigsh needs k below the size
         lam = scipy.linalg.eigh(A.toarray(), eigvals_only=True, subset_by_index=[0, k - 1])
     else:

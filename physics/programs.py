@@ -80,6 +80,10 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     vectorises that dimension with masked 16-lane vectors that use 3 of their lanes, where the compiler unrolls the
     scalar loop; the batched LGVI step ran 1.9-2.1x faster so (``scripts/bench/lgvi.py``, ``docs/lgvi_speed.md``)."""
     from torch.fx.experimental.proxy_tensor import make_fx
+    if isinstance(inputs, Tensor) or not all(isinstance(x, Tensor) for x in inputs):  # types only: nothing is read
+        # a lone tensor was traced as its rows ("Tracing expected 1 arguments but got 3"), a float failed in .device
+        raise TypeError("compile_program: inputs must be a sequence of tensors, one per argument of fn, got "
+                        f"{type(inputs).__name__ if isinstance(inputs, Tensor) else [type(x).__name__ for x in inputs]}")
     tensor_out = []
 
     def traced(*args):  # compile_fx_inner compiles graphs that return a tuple

@@ -67,10 +67,19 @@ def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=
     prm = rod.params(torch.float64)
     n = rod.n_nodes
     _check_inputs(n, p0, R0, gravity, field, tol, rounds)
+    fixed = tuple(fixed)
+    if not all(isinstance(i, numbers.Integral) and not isinstance(i, bool) or torch.is_tensor(i) and i.numel() == 1
+               and not i.is_floating_point() and i.dtype != torch.bool for i in fixed):  # 1.7 fixed node 1, silently
+        raise ValueError(f"static_equilibrium: fixed must hold integer node indices, got {fixed}")
     fixed = tuple(int(i) for i in fixed)
     if not all(-n <= i < n for i in fixed):
         raise ValueError(f"static_equilibrium: fixed node indices must lie in [-{n}, {n - 1}], got {fixed}")
     fixed = {i % n for i in fixed}  # negative indices count from the tip, as in Python
+    if len(fixed) == n:
+        raise ValueError(f"static_equilibrium: fixed holds every node of this {n}-node rod: no free node to solve for")
+    if not fixed and gravity is not None and any(float(x) != 0 for x in gravity):
+        raise ValueError("static_equilibrium: a rod with no fixed node under gravity has no equilibrium (it falls); "
+                         "fix a node, e.g. fixed=(0,)")
     free = torch.tensor([i for i in range(n) if i not in fixed], dtype=torch.long)
     k = len(free)
     lchar, L = min(rod.lengths), rod.length

@@ -21,6 +21,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .checks import as_real as _real
+
 __all__ = [
     "Material", "CircularSection", "SquareSection", "Magnet", "Rod", "RodParams", "StabilityEstimate",
 ]
@@ -29,7 +31,7 @@ _SQUARE_TORSION = 0.1406  # Saint-Venant torsion constant of a square: J_t = 0.1
 
 
 def _finite_positive(name: str, value: float) -> float:
-    v = float(value)
+    v = _real(name, value)
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{name} must be a finite positive number, got {value!r}")
     return v
@@ -37,7 +39,10 @@ def _finite_positive(name: str, value: float) -> float:
 
 def finite_vector(name: str, v, n: int = 3) -> tuple[float, ...]:
     """``v`` as a tuple of ``n`` floats; ``ValueError`` naming ``name`` unless they are ``n`` finite numbers."""
-    t = tuple(float(x) for x in v)
+    try:
+        t = tuple(float(x) for x in v)
+    except (TypeError, ValueError):  # a scalar, a string, a (3, 1) array
+        raise ValueError(f"{name} must be {n} finite numbers, got {v!r}") from None
     if len(t) != n or not all(math.isfinite(x) for x in t):
         raise ValueError(f"{name} must be {n} finite numbers, got {v!r}")
     return t
@@ -57,7 +62,7 @@ class Material:
         _finite_positive("Material.density (kg/m^3)", self.density)
         if self.nu is None and self.G is None:
             raise ValueError("Material: give the Poisson ratio nu or the shear modulus G")
-        if self.nu is not None and not (-1.0 < float(self.nu) <= 0.5):
+        if self.nu is not None and not (-1.0 < _real("Material.nu (Poisson ratio)", self.nu) <= 0.5):
             raise ValueError(f"Material.nu (Poisson ratio) must lie in (-1, 0.5], got {self.nu!r}")
         if self.G is not None:
             _finite_positive("Material.G (shear modulus, Pa)", self.G)
@@ -144,13 +149,12 @@ class Magnet:
     name: str = ""
 
     def __post_init__(self):
-        if not math.isfinite(float(self.s)) or self.s < 0:
+        if not math.isfinite(_real("Magnet.s (arclength, m)", self.s)) or self.s < 0:
             raise ValueError(f"Magnet.s (arclength, m) must be finite and >= 0, got {self.s!r}")
-        if not math.isfinite(float(self.mass)) or self.mass < 0:
+        if not math.isfinite(_real("Magnet.mass (kg)", self.mass)) or self.mass < 0:
             raise ValueError(f"Magnet.mass (kg) must be finite and >= 0, got {self.mass!r}")
-        for nm, vec in (("moment", self.moment), ("inertia", self.inertia)):
-            if len(vec) != 3 or not all(math.isfinite(float(x)) for x in vec):
-                raise ValueError(f"Magnet.{nm} must be three finite numbers, got {vec!r}")
+        for nm in ("moment", "inertia"):  # kept as float tuples: a list or tensor left the rod unhashable/unusable
+            object.__setattr__(self, nm, finite_vector(f"Magnet.{nm}", getattr(self, nm)))
         if any(x < 0 for x in self.inertia):
             raise ValueError(f"Magnet.inertia must be non-negative, got {self.inertia!r}")
 

@@ -31,6 +31,7 @@ import math
 import torch
 
 from .loads import Loads, UniformField
+from .magnetics.validate import positive, real, vec3
 from .programs import is_tracing
 from .rod import CircularSection, Magnet, Material, Rod, SquareSection
 from .scene import G_EARTH, Scene, dipole_moment, table_to_si
@@ -91,9 +92,12 @@ class RotatingField:
     """``B(t) = B_static + B_rot (cos(w t) e_a + sin(w t) e_b)`` (T), ``w = 2 pi f``."""
 
     def __init__(self, static, amplitude: float, frequency: float, e_a, e_b):
-        self.static = torch.tensor(static, dtype=torch.float64)
-        self.amplitude, self.frequency = float(amplitude), float(frequency)
-        self.e_a, self.e_b = torch.tensor(e_a, dtype=torch.float64), torch.tensor(e_b, dtype=torch.float64)
+        # checked here: a 2-vector failed in torch at the first step, a NaN gave a NaN field
+        self.static = torch.tensor(vec3("RotatingField.static (T)", static), dtype=torch.float64)
+        self.amplitude = real("RotatingField.amplitude (T)", amplitude)
+        self.frequency = real("RotatingField.frequency (Hz)", frequency)
+        self.e_a, self.e_b = (torch.tensor(vec3(f"RotatingField.{k}", v), dtype=torch.float64)
+                              for k, v in (("e_a", e_a), ("e_b", e_b)))
 
     def __call__(self, t) -> torch.Tensor:
         if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor
@@ -108,8 +112,11 @@ class SweptField:
     in the (e_a, e_b)-plane: angle ``phi_max sin^2(pi t / period)`` from ``e_a`` towards ``e_b``."""
 
     def __init__(self, b0: float, b1: float, period: float, phi_max: float, e_a, e_b):
-        self.b0, self.b1, self.period, self.phi_max = float(b0), float(b1), float(period), float(phi_max)
-        self.e_a, self.e_b = torch.tensor(e_a, dtype=torch.float64), torch.tensor(e_b, dtype=torch.float64)
+        # checked here: period 0 divided by zero at the first step, a negative one held the field at b0 along e_a
+        self.b0, self.b1 = real("SweptField.b0 (T)", b0), real("SweptField.b1 (T)", b1)
+        self.period, self.phi_max = positive("SweptField.period (s)", period), real("SweptField.phi_max (rad)", phi_max)
+        self.e_a, self.e_b = (torch.tensor(vec3(f"SweptField.{k}", v), dtype=torch.float64)
+                              for k, v in (("e_a", e_a), ("e_b", e_b)))
 
     def __call__(self, t) -> torch.Tensor:
         if is_tracing():  # traced (LGVI.compiled_rollout): ``t`` a 0-d tensor

@@ -55,6 +55,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from .coil_currents import CoilField, MinJerkCurrents, SinusoidCurrents, min_jerk
+from .checks import check_integer
 from .loads import Loads
 from .magnetics.emns import six_coil_emns
 from .programs import is_tracing
@@ -87,8 +88,11 @@ class MagnetBlockRod(Rod):
         super().__post_init__()
         if not (math.isfinite(self.rigid_factor) and self.rigid_factor >= 1.0):
             raise ValueError(f"MagnetBlockRod.rigid_factor must be >= 1, got {self.rigid_factor!r}")
-        if not all(0 <= e < self.N for e in self.rigid_elements):
+        # whole element indices, kept as a tuple: 1.5 stiffened element 1 silently and a list left the rod unhashable
+        elements = tuple(check_integer("MagnetBlockRod.rigid_elements[i]", e, lo=0) for e in self.rigid_elements)
+        if not all(0 <= e < self.N for e in elements):
             raise ValueError(f"MagnetBlockRod.rigid_elements must lie in [0, {self.N}), got {self.rigid_elements}")
+        object.__setattr__(self, "rigid_elements", elements)
 
     def params(self, dtype: torch.dtype = torch.float64, device=None):
         p = super().params(torch.float64)
@@ -126,6 +130,10 @@ def modal_damping(rod_: Rod, n_modes: int = 6) -> list[tuple[float, float]]:
     import scipy.linalg
 
     from .modal import stiffness_and_mass
+    n_modes = check_integer("modal_damping: n_modes", n_modes)
+    if n_modes > 6 * rod_.N:  # scipy's eigh: "Requested eigenvalue indices are not valid"; 2.5 gave 2 modes
+        raise ValueError(f"modal_damping: n_modes={n_modes} exceeds the {6 * rod_.N} clamped-free modes of this "
+                         f"{rod_.N}-element rod")
     K, mass = stiffness_and_mass(rod_)
     keep = np.arange(6, 6 * rod_.n_nodes)
     K, M = K.toarray()[keep][:, keep], mass[keep]
@@ -139,9 +147,7 @@ def modal_damping(rod_: Rod, n_modes: int = 6) -> list[tuple[float, float]]:
 
 def rod(per_part: int = _NB) -> MagnetBlockRod:
     """The scene's rod; ``per_part``: elements in each PMC part (the printed 4; a magnet block is always one element)."""
-    if int(per_part) != per_part or per_part < 1:
-        raise ValueError(f"per_part must be an integer >= 1, got {per_part!r}")
-    return _rod(DAMPING, ROT_DAMPING, int(per_part))
+    return _rod(DAMPING, ROT_DAMPING, check_integer("per_part", per_part))
 
 
 _EMNS = None

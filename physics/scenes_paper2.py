@@ -43,7 +43,9 @@ from dataclasses import replace
 
 import torch
 
+from .checks import check_integer
 from .loads import Loads
+from .magnetics.validate import real, vec3
 from .programs import is_tracing
 from .rod import CircularSection, Material, Rod
 from .scene import Scene
@@ -95,7 +97,7 @@ class SquareTipForce:
         self.n_nodes = rod.n_nodes
         self._tip = torch.zeros(2, rod.n_nodes, 3, dtype=torch.float64)
         self._tip[0, -1, 0] = self._tip[1, -1, 1] = 1.0
-        a = float(half_side)
+        a = real("SquareTipForce.half_side (m)", half_side)  # NaN gave a NaN force
         self._set_path([(0.0, 0.0), (a, a), (-a, a), (-a, -a), (a, -a), (a, a), (0.0, 0.0)], durations)
 
     def _set_path(self, waypoints, durations):
@@ -149,8 +151,18 @@ class NodePulse:
                  shape: str = "constant"):
         if shape not in ("constant", "cos_pi_t"):
             raise ValueError(f"NodePulse.shape must be 'constant' or 'cos_pi_t', got {shape!r}")
-        self.n_nodes, self.node, self.t0, self.t1, self.shape = n_nodes, node, float(t0), float(t1), shape
-        self.vector = float(amplitude) * torch.tensor(direction, dtype=torch.float64)
+        # checked here, not at the step where the pulse starts: a 2-vector direction failed in torch there, a NaN
+        # amplitude was reported as a diverged state, t1 < t0 (swapped) gave no force at all
+        n_nodes = check_integer("NodePulse.n_nodes", n_nodes, lo=2)
+        node = check_integer("NodePulse.node", node, lo=-n_nodes)
+        if node >= n_nodes:
+            raise ValueError(f"NodePulse.node must lie in [-{n_nodes}, {n_nodes - 1}], got {node}")
+        t0, t1 = real("NodePulse.t0 (s)", t0), float(t1)
+        if math.isnan(t1) or t1 < t0:
+            raise ValueError(f"NodePulse.t1 (s) must be >= t0 = {t0:g} (the force acts for t in [t0, t1)), got {t1!r}")
+        self.n_nodes, self.node, self.t0, self.t1, self.shape = n_nodes, node, t0, t1, shape
+        self.vector = real("NodePulse.amplitude (N)", amplitude) * torch.tensor(vec3("NodePulse.direction", direction),
+                                                                              dtype=torch.float64)
         self._on_node = torch.zeros(n_nodes, 1, dtype=torch.float64)
         self._on_node[node] = 1.0
 

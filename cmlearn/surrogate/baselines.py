@@ -74,6 +74,17 @@ class LinearStep(nn.Module):
         the standardised features' weights. Returns self."""
         if not ridge >= 0:
             raise ValueError(f"ridge must be >= 0, got {ridge!r}")
+        N, K = self.config.n_tracked, len(self.config.modeled)
+        if positions.dim() != 4 or positions.shape[-2:] != (N, 3):
+            raise ValueError(f"positions must be (V, T, n_tracked={N}, 3), got shape {tuple(positions.shape)}")
+        V, T = positions.shape[:2]
+        if wrench.dim() != 4 or wrench.shape[0] != V or wrench.shape[1] < T - 1 or wrench.shape[-2:] != (K, 3):
+            raise ValueError(f"wrench must be (V={V}, T-1={T - 1}, K={K}, 3): the modelled nodes' forces, got shape "
+                             f"{tuple(wrench.shape)}")
+        ranges = [tuple(r) for r in ranges]
+        for v, a, b in ranges:
+            if not (0 <= v < V and 0 <= a and b <= T - 1):
+                raise ValueError(f"range {(v, a, b)} lies outside positions' {V} variants of frames 0..{T - 1}")
         W = self.config.eta + 1
         X, Y = [], []
         for v, a, b in ranges:
@@ -87,6 +98,9 @@ class LinearStep(nn.Module):
         if not X:
             raise ValueError(f"ranges hold no step with eta + 1 = {W} frames before it")
         X, Y = torch.cat(X), torch.cat(Y)
+        if not (bool(torch.isfinite(X).all()) and bool(torch.isfinite(Y).all())):  # lstsq: an internal assert in MKL
+            raise ValueError("positions and wrench must be finite on the steps of ranges (a NaN frame, e.g. of a "
+                             "diverged or truncated run: cut it out of the ranges)")
         if self.local:
             X, Y = X.transpose(0, 1), Y.transpose(0, 1)  # (K, S, F), (K, S, 3)
         else:

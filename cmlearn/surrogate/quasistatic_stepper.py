@@ -42,6 +42,7 @@ from cmlearn.data.tasks import CURRENT_LIMIT
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 from physics.cosserat_ode import quat_matrix
 from physics.cosserat_shooting import StaticSolution
+from physics.checks import check_integer
 from physics.errors import SolverError
 
 from .magnetic import field_table
@@ -79,6 +80,11 @@ class QuasiStaticStepper:
         if max_seconds is not None and not ok:
             raise ValueError(f"max_seconds must be a finite number of seconds > 0 or None, got {max_seconds!r}")
         self.max_seconds = max_seconds
+        try:  # checked here, not at the first step ("cannot unpack non-iterable int object" for a flat (1, 10))
+            stages = tuple((check_integer("load steps", n), check_integer("iterations", i)) for n, i in stages)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"stages must be (load steps, iterations) pairs of integers >= 1, e.g. {STAGES}, got "
+                             f"{stages!r} ({e})") from None
         self.model, self.rest, self.emns, self.pose, self.delta = model.eval(), rest, emns, pose, float(delta)
         self.sc = paper2_magnetic_rod(13)
         self.solver = self.sc.solver(compile=compile, **({} if tol is None else {"tol": tol}))

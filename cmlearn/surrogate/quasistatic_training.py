@@ -21,6 +21,7 @@ from torch.utils.data import DataLoader, Dataset
 from cmlearn.data.windows import split_ranges
 from cmlearn.models.quasistatic import QuasiStaticCorrection
 from cmlearn.surrogate.training import SeededDataModule
+from physics.checks import check_integer
 
 __all__ = ["track_ends", "training_ranges", "fit_scales", "DeviationWindows", "QuasiStaticDataModule", "QuasiStaticModule"]
 
@@ -64,6 +65,11 @@ class DeviationWindows(Dataset):
 
     def __init__(self, s: torch.Tensor, d: torch.Tensor, ranges, eta: int, increments: int, horizon: int,
                  stride: int = 1):
+        # horizon 0 gave empty targets (a NaN loss), eta -1 an empty history, stride 0 range()'s error
+        for name, v, lo in (("eta", eta, 0), ("increments", increments, 1), ("horizon", horizon, 1),
+                            ("stride", stride, 1)):
+            check_integer(f"DeviationWindows: {name}", v, lo)
+        eta, increments, horizon, stride = int(eta), int(increments), int(horizon), int(stride)
         self.s, self.d, self.eta, self.n, self.H = s.float(), d.float(), eta, increments, horizon
         lead = max(eta, increments - 1)
         self.starts = [(v, k) for v, a, b in ranges for k in range(max(a, lead), b - horizon + 1, stride)]

@@ -1,27 +1,12 @@
 """Input checks shared by the magnetics specs: each error names the parameter and the valid range."""
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from ..checks import check_integer as integer
+from ..checks import check_integer as integer, positive, real
 
 __all__ = ["real", "positive", "integer", "vec3", "rotation"]
-
-
-def real(name, v, positive=False) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) and not (isinstance(v, Tensor) and v.numel() == 1):
-        raise TypeError(f"{name} must be a real number, got {type(v).__name__}")
-    v = float(v)
-    if not math.isfinite(v) or (positive and v <= 0):
-        raise ValueError(f"{name} must be finite{' and > 0' if positive else ''}, got {v!r}")
-    return v
-
-
-def positive(name, v) -> float:
-    return real(name, v, positive=True)
 
 
 def vec3(name, v, nonzero=False) -> tuple:
