@@ -134,6 +134,9 @@ def save_sealed(path: str | Path, blob: dict) -> Path:
     path = Path(path)
     if path.suffix == ".json":
         raise ValueError(f"path must not end in .json (the metadata goes to <name>.json), got {str(path)!r}")
+    if "meta" not in blob:  # a KeyError came after the weights were written, and left them without their .json
+        raise ValueError(f"blob must carry its metadata under 'meta', got keys {sorted(blob)}")
+    text = json.dumps(blob["meta"], indent=2, default=str) + "\n"
     save_torch_atomic(path, seal(blob))
-    write_text_atomic(path.with_suffix(".json"), json.dumps(blob["meta"], indent=2, default=str) + "\n")
+    write_text_atomic(path.with_suffix(".json"), text)
     return path

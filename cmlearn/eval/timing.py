@@ -7,11 +7,17 @@ import math
 import time
 from typing import Callable
 
+from physics.checks import check_integer
+
 
 def json_line(result, digits: int = 6) -> str:
     """``result`` (nested dicts and lists) as one line of JSON, floats rounded to ``digits`` significant digits and
-    non-finite ones written as strings (``"nan"``, ``"inf"``), which JSON has no numbers for."""
+    non-finite ones written as strings (``"nan"``, ``"inf"``), which JSON has no numbers for. numpy scalars and
+    arrays, and tensors, are written as the numbers they hold (json could not write them: a benchmark failed at its
+    very end)."""
     def rounded(x):
+        if hasattr(x, "tolist") and type(x).__module__.split(".")[0] in ("numpy", "torch"):
+            x = x.tolist()  # a numpy scalar or array, a tensor: Python numbers and lists
         if isinstance(x, float):
             return float(f"{x:.{digits}g}") if math.isfinite(x) else str(x)
         if isinstance(x, (list, tuple)):
@@ -28,7 +34,9 @@ def lgvi_blocks(scene, steps: int, compiled: bool, steps_per_call: int = 4) -> t
     ``steps`` steps of ``scene``, one rollout continued from call to call from the scene's start; the warm-up (the
     compile, for the compiled path) runs a few steps of it beforehand, discarded. The integrator's
     ``eager_blocks`` (compiled) counts the calls of the last block stepped eagerly, where a field cache refreshed."""
-    if steps % steps_per_call or steps < 1:
+    steps_per_call = check_integer("steps_per_call", steps_per_call)
+    steps = check_integer("steps", steps)
+    if steps % steps_per_call:
         raise ValueError(f"steps must be a positive multiple of steps_per_call={steps_per_call}, got {steps}")
     sim = scene.make_integrator()
     cfg = scene.initial_configuration()

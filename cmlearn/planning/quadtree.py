@@ -24,6 +24,10 @@ def quadtree_rectangles(gray: np.ndarray, threshold: int = 50, min_size: int = 4
         raise ValueError(f"gray must be a non-empty 2-D image, got shape {g.shape}")
     if not (isinstance(min_size, (int, np.integer)) and min_size >= 1):
         raise ValueError(f"min_size must be an int >= 1 (pixels), got {min_size!r}")
+    from .controllers import _check_settings
+    _check_settings(grey={"threshold": threshold})  # a NaN threshold found no obstacle at all
+    if g.dtype.kind == "f" and not np.isfinite(g).all():  # a NaN pixel was free space
+        raise ValueError("gray must be finite: it has NaN or infinite pixels")
     occ = (g <= threshold).astype(np.int64)
     sat = np.zeros((g.shape[0] + 1, g.shape[1] + 1), dtype=np.int64)
     sat[1:, 1:] = occ.cumsum(0).cumsum(1)

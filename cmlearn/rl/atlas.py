@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import hashlib
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write
+from ..io import atomic_write, check_writable
 from .camera import CameraSpec, PybulletCamera
 from .maps import Map
 
@@ -50,16 +52,23 @@ class Atlas:
         self._filled = self.filled.tolist()
         self._camera = None
         self.renders = self._count = 0
-        if self.cache_dir is not None and self.path.exists():
-            self._load()
+        if self.cache_dir is not None:
+            if self.path.exists():
+                self._load()
+            else:  # a file or an unwritable folder failed only at the save, after every view was rendered
+                check_writable(self.cache_dir, folder=True)
 
     @property
     def path(self) -> Path | None:
         return None if self.cache_dir is None else self.cache_dir / f"atlas_{self.key}.npz"
 
     def _load(self):
-        with np.load(self.path) as z:
-            imgs = z["images"]
+        try:
+            with np.load(self.path) as z:
+                imgs = z["images"]
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error) as e:  # numpy's words
+            raise ValueError(f"atlas file {self.path}: unreadable or not an atlas ({type(e).__name__}: {e}); delete "
+                             "the file to rebuild it") from None
         if imgs.shape != self.images.shape or imgs.dtype != np.uint8:
             raise ValueError(f"atlas file {self.path}: images {imgs.dtype}{imgs.shape} do not match the map grid and "
                              f"camera {self.images.shape}; delete the file to rebuild it")
@@ -74,6 +83,12 @@ class Atlas:
         return self._camera
 
     def node_view(self, i: int, j: int) -> np.ndarray:
+        """The view at grid node (i, j); ValueError outside the grid (a negative index rendered a view off the map
+        into the slot of a node at the other side, which the saved atlas kept)."""
+        self.map.check_node("(i, j)", (i, j))
+        return self._node_view(i, j)
+
+    def _node_view(self, i: int, j: int) -> np.ndarray:
         if not self._filled[i][j]:
             self.images[i, j] = self.camera().render(*self.map.node_xy(i, j))
             self.filled[i, j] = self._filled[i][j] = True
@@ -84,12 +99,12 @@ class Atlas:
         return self.images[i, j]
 
     def view(self, x: float, y: float) -> np.ndarray:
-        return self.node_view(*self.map.nearest_node(x, y))
+        return self._node_view(*self.map.nearest_node(x, y))  # always a node of the grid
 
     def precompute(self, save: bool = True) -> "Atlas":
         for i in range(self.map.nx):
             for j in range(self.map.ny):
-                self.node_view(i, j)
+                self._node_view(i, j)
         if save and self.path is not None and not self.path.exists():
             self.save()
         return self

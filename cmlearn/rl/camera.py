@@ -13,6 +13,7 @@ One 84x84 render costs about 2-4 ms; :mod:`cmlearn.rl.atlas` renders each 1 cm g
 from __future__ import annotations
 
 import math
+import numbers
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,9 +24,13 @@ from .maps import Map
 
 __all__ = ["CameraSpec", "PybulletCamera"]
 
+NEAR, FAR = 0.01, 1.0  # the clipping planes of the camera's projection (m)
+
 
 @dataclass(frozen=True)
 class CameraSpec:
+    """The camera: ``size`` x ``size`` pixels, ``height`` (m) above the table, seeing ``extent`` (m) of it; the table
+    must lie between the renderer's clipping planes (``NEAR``, ``FAR``), or the view is blank."""
     size: int = 84
     height: float = 0.105
     extent: float = 0.12
@@ -35,10 +40,14 @@ class CameraSpec:
         if not (isinstance(self.size, int) and self.size >= 16):
             raise ValueError(f"size must be an int >= 16 pixels, got {self.size!r}")
         for name in ("height", "extent"):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be finite and > 0 (m), got {getattr(self, name)}")
-        if not (0 <= self.table_level <= 255):
-            raise ValueError(f"table_level must be in [0, 255], got {self.table_level}")
+            v = getattr(self, name)
+            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0 (m), got {v!r}")
+        if not NEAR < self.height < FAR - 0.01:  # outside, the table was clipped: a blank (white) view, no walls
+            raise ValueError(f"height must be in ({NEAR}, {FAR - 0.01}) m (the table between the camera's clipping "
+                             f"planes), got {self.height}")
+        if not (isinstance(self.table_level, numbers.Real) and 0 <= self.table_level <= 255):
+            raise ValueError(f"table_level must be in [0, 255], got {self.table_level!r}")
 
     @property
     def fov_deg(self) -> float:
@@ -71,10 +80,12 @@ class PybulletCamera:
         body = p.createMultiBody(baseVisualShapeIndex=quad, basePosition=[*map_.origin, 0.0], physicsClientId=cid)
         tex = p.loadTexture(str(tmp / "map.png"), physicsClientId=cid)
         p.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=cid)
-        self._proj = p.computeProjectionMatrixFOV(fov=spec.fov_deg, aspect=1.0, nearVal=0.01, farVal=1.0)
+        self._proj = p.computeProjectionMatrixFOV(fov=spec.fov_deg, aspect=1.0, nearVal=NEAR, farVal=FAR)
 
     def render(self, x: float, y: float) -> np.ndarray:
         """Grayscale (size, size) uint8 view from the end-effector at (x, y)."""
+        if not all(isinstance(v, numbers.Real) and math.isfinite(v) for v in (x, y)):  # NaN gave a white view
+            raise ValueError(f"x and y must be finite numbers (m), got {x!r}, {y!r}")
         p, s = self.p, self.spec
         view = p.computeViewMatrix([x, y, s.height], [x, y, 0.0], [0, 1, 0])
         rgba = p.getCameraImage(s.size, s.size, view, self._proj, renderer=p.ER_TINY_RENDERER, shadow=0,

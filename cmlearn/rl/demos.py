@@ -16,7 +16,18 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from physics.checks import as_real, check_integer
+
 __all__ = ["collect_demonstrations", "episode_transitions"]
+
+
+def _check_return(n_steps, gamma) -> tuple[int, float]:
+    """``(n_steps, gamma)``; ValueError unless ``n_steps`` is an integer >= 1 and ``gamma`` a discount in [0, 1] (NaN
+    made every return NaN; 3.0 steps failed in numpy's slicing)."""
+    gamma = as_real("gamma", gamma)
+    if not 0 <= gamma <= 1:
+        raise ValueError(f"gamma (the discount) must be in [0, 1], got {gamma!r}")
+    return check_integer("n_steps", n_steps), gamma
 
 
 def episode_transitions(obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, terminated: bool,
@@ -26,15 +37,26 @@ def episode_transitions(obs: np.ndarray, actions: np.ndarray, rewards: np.ndarra
     if len(obs) != T + 1 or len(rewards) != T or T < 1:
         raise ValueError(f"an episode of T >= 1 steps needs T + 1 observations and T rewards, got "
                          f"{len(obs)}, {len(actions)}, {len(rewards)}")
-    if n_steps < 1:
-        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    n_steps, gamma = _check_return(n_steps, gamma)
+    num_actions = check_integer("num_actions", num_actions)
+    actions = np.asarray(actions)
+    # (T, 1) actions, or one-hot ones, came out one-hot again as (T, 1, 4) or (T, 4, 4); 1.7 ran as action 1
+    if actions.shape != (T,) or not (np.issubdtype(actions.dtype, np.integer) or (
+            np.issubdtype(actions.dtype, np.floating) and (actions == np.round(actions)).all())) \
+            or actions.min() < 0 or actions.max() >= num_actions:
+        raise ValueError(f"actions must be T action indices (integers in [0, {num_actions})), got "
+                         f"{actions.dtype}{actions.shape}")
+    rewards = np.asarray(rewards, dtype=np.float64)
+    if rewards.shape != (T,) or not np.isfinite(rewards).all():  # (T, 1) failed in numpy, NaN became the return
+        raise ValueError(f"rewards must be T finite numbers, got shape {rewards.shape}"
+                         f"{'' if rewards.shape != (T,) else ' with non-finite values'}")
     k = np.minimum(n_steps, T - np.arange(T))                      # steps in each window
     disc = gamma ** np.arange(n_steps)
-    padded = np.concatenate([np.asarray(rewards, dtype=np.float64), np.zeros(n_steps)])
+    padded = np.concatenate([rewards, np.zeros(n_steps)])
     ret = np.array([(padded[t:t + n_steps] * disc * (np.arange(n_steps) < k[t])).sum() for t in range(T)])
     end = np.arange(T) + k
     term = (end == T) & bool(terminated)
-    a = torch.as_tensor(np.asarray(actions), dtype=torch.long)
+    a = torch.as_tensor(actions, dtype=torch.long)
     obs_t = torch.as_tensor(np.asarray(obs))
     return TensorDict({
         "observation": obs_t[:T],
@@ -52,8 +74,8 @@ def collect_demonstrations(env_kwargs: dict, episodes: int, n_steps: int, gamma:
     """Run the teacher for ``episodes`` seeded episodes and keep the successful ones as transitions."""
     from .env import MagneticParticleEnv
     from .teacher import GeodesicTeacher
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    episodes = check_integer("episodes", episodes)
+    n_steps, gamma = _check_return(n_steps, gamma)  # checked before the episodes run, not after
     env = MagneticParticleEnv(**env_kwargs)
     teacher = GeodesicTeacher(env)
     parts, kept, t0 = [], 0, time.perf_counter()

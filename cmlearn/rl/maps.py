@@ -14,11 +14,14 @@ each edge as a channel whose width varies between its nodes, with occasional nar
 from __future__ import annotations
 
 import math
+import numbers
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from physics.checks import check_integer
 
 __all__ = ["Map", "procedural_map", "load_map", "map_seeds"]
 
@@ -29,6 +32,7 @@ def map_seeds(split: str, count: int) -> tuple[int, ...]:
     """Seeds of the procedural training maps (``"train"``: 0, 1, ...) or unseen maps (``"unseen"``: 10000, ...)."""
     if split not in ("train", "unseen"):
         raise ValueError(f"split must be 'train' or 'unseen', got {split!r}")
+    count = check_integer("count", count, lo=0)  # a negative count gave no maps
     return tuple(range(count)) if split == "train" else tuple(range(10_000, 10_000 + count))
 
 
@@ -102,12 +106,22 @@ class Map:
         j = int(round((y - self.origin[1]) / self.step - 0.5))
         return min(max(i, 0), self.nx - 1), min(max(j, 0), self.ny - 1)
 
+    def check_node(self, name: str, node) -> tuple[int, int]:
+        """``node`` as a grid node (i, j); ValueError naming ``name`` unless it is two integers inside the grid (a
+        negative index wrapped round to a node at the other side, a fractional one was truncated)."""
+        if not (len(np.shape(node)) == 1 and len(node) == 2 and all(
+                isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in node)
+                and 0 <= node[0] < self.nx and 0 <= node[1] < self.ny):
+            raise ValueError(f"{name} must be a grid node: integers (i, j) with 0 <= i < {self.nx} and "
+                             f"0 <= j < {self.ny}, got {node!r}")
+        return int(node[0]), int(node[1])
+
     # --------------------------------------------------------------- graph
     def geodesic(self, goal_node: tuple[int, int], kind: str = "free") -> np.ndarray:
         """Shortest 4-neighbour path length (m) from every node to ``goal_node`` through the
         ``"free"`` nodes (clearance > 2.5 mm, the particle's radius) or the ``"safe"`` ones; ``inf``
         where unreachable. Cached per goal."""
-        key = (tuple(int(v) for v in goal_node), kind)
+        key = (self.check_node("goal_node", goal_node), kind)
         if key in self._cache:
             return self._cache[key]
         if kind not in ("free", "safe"):
@@ -144,14 +158,14 @@ class Map:
         return node
 
     def check_reachable(self, start_node, goal_node):
-        if not np.isfinite(self.geodesic(goal_node, "safe")[tuple(start_node)]):
+        if not np.isfinite(self.geodesic(goal_node, "safe")[self.check_node("start_node", start_node)]):
             raise ValueError(f"goal node {tuple(goal_node)} is not reachable from start node {tuple(start_node)} "
                              f"through free space with {self.clearance} m clearance")
 
     def sample_partner(self, rng: np.random.Generator, node, min_distance: float = 0.1) -> tuple[int, int]:
         """A random safe node connected to ``node`` and at least ``min_distance`` from it along the free space
         (the start of a given goal, or the goal of a given start)."""
-        dist = self.geodesic(node, "safe")
+        dist = self.geodesic(self.check_node("node", node), "safe")
         ok = np.argwhere(np.isfinite(dist) & (dist >= min_distance))
         if not len(ok):
             raise ValueError(f"map {self.name!r}: no safe node {min_distance} m from node {tuple(node)} is connected to it")
@@ -170,6 +184,10 @@ class Map:
 
 
 # ------------------------------------------------------------------- procedural maps
+def _finite(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def _segments_free(shape, res, segs) -> np.ndarray:
     H, W = shape
     ys = (H - 0.5 - np.arange(H))[:, None] * res
@@ -191,8 +209,17 @@ def procedural_map(seed: int, size: tuple[float, float] = (0.4, 0.4), resolution
     """An intestine-like map from ``seed``: a winding channel with narrowings and dead ends."""
     if not isinstance(seed, (int, np.integer)):
         raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+    for name, v in (("size", size), ("width", width)):
+        if not (np.shape(v) == (2,) and all(_finite(x) and x > 0 for x in v)):
+            raise ValueError(f"{name} must be two finite lengths > 0 (m), got {v!r}")
+    for name, v in (("resolution", resolution), ("lattice", lattice), ("narrowing", narrowing)):
+        if not (_finite(v) and v > 0):
+            raise ValueError(f"{name} must be finite and > 0 (m), got {v!r}")
     if not (0 < narrowing <= width[0] <= width[1]):
         raise ValueError(f"need 0 < narrowing <= width[0] <= width[1], got {narrowing}, {width}")
+    if not (_finite(p_narrow) and 0 <= p_narrow <= 1):  # 30 (%) narrowed every edge, NaN none
+        raise ValueError(f"p_narrow (a probability) must be in [0, 1], got {p_narrow!r}")
+    dead_ends = check_integer("dead_ends", dead_ends, lo=0)  # a negative count gave none
     rng = np.random.default_rng(int(seed))
     W, H = size
     nx, ny = max(2, int(W / lattice)), max(2, int(H / lattice))

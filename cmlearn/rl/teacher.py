@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from physics.checks import as_real, check_integer
+
 from .env import ACTIONS
 
 __all__ = ["GeodesicTeacher"]
@@ -26,11 +28,12 @@ class GeodesicTeacher:
                  revisit_penalty: float = 0.003, memory: int = 8):
         for name, v in (("clearance_weight", clearance_weight), ("clearance_cap", clearance_cap),
                         ("revisit_penalty", revisit_penalty)):
-            if not (np.isfinite(v) and v >= 0):
+            if not (np.isfinite(as_real(name, v)) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        memory = check_integer("memory", memory, lo=0)  # -1 kept all but the first position, 2.5 ran as 2
         self.env = env.unwrapped
         self.clearance_weight, self.clearance_cap = clearance_weight, clearance_cap
-        self.revisit_penalty, self.memory = revisit_penalty, int(memory)
+        self.revisit_penalty, self.memory = revisit_penalty, memory
         self._geo, self._goal, self._recent = None, None, []
 
     def reset(self, info=None) -> None:

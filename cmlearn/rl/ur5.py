@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import numbers
 import os
 import tempfile
 from pathlib import Path
@@ -55,8 +56,35 @@ def _inv(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def _check_tool_length(tool_length) -> float:
+    if not (isinstance(tool_length, numbers.Real) and math.isfinite(tool_length) and 0 <= tool_length < 0.5):
+        raise ValueError(f"tool_length must be in [0, 0.5) m, got {tool_length!r}")
+    return float(tool_length)
+
+
+def _joints(name: str, q) -> np.ndarray:
+    """``q`` as 6 joint angles (rad); ValueError naming ``name`` unless it is 6 finite numbers."""
+    q = np.asarray(q, dtype=float)
+    if q.shape != (6,) or not np.isfinite(q).all():
+        raise ValueError(f"{name} must be 6 finite joint angles (rad), got shape {q.shape}")
+    return q
+
+
+def _check_rotation(R) -> np.ndarray:
+    """``R`` as a 3x3 array; ValueError unless it is a proper rotation matrix (the IK reported a valid but
+    unreachable pose as "no inverse-kinematics solution", and :meth:`UR5.reachable` answered False)."""
+    if R is DOWN:
+        return R
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3) or not np.isfinite(R).all() or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 \
+            or np.linalg.det(R) < 0:
+        raise ValueError(f"R must be a 3x3 rotation matrix (orthonormal, det +1), got {R.tolist()}")
+    return R
+
+
 def ur5_urdf(tool_length: float = 0.06) -> str:
     """URDF text of the UR5 with primitive geometry; joint ``i`` origin = the DH transform of link ``i-1``."""
+    tool_length = _check_tool_length(tool_length)
     masses = (3.7, 8.393, 2.275, 1.219, 1.219, 0.1879)
     lines = ['<?xml version="1.0"?>', '<robot name="ur5_dh">']
 
@@ -105,8 +133,10 @@ class UR5:
 
     def __init__(self, tool_length: float = 0.06, tol: float = 1e-6, max_joint_step: float = 1.0,
                  fallback: str | None = None):
-        if not (math.isfinite(tool_length) and 0 <= tool_length < 0.5):
-            raise ValueError(f"tool_length must be in [0, 0.5) m, got {tool_length}")
+        tool_length = _check_tool_length(tool_length)
+        for name, v in (("tol", tol), ("max_joint_step", max_joint_step)):
+            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):  # NaN passed every check
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         if fallback not in (None, "pybullet"):
             raise ValueError(f"fallback must be None or 'pybullet', got {fallback!r}")
         self.tool_length, self.tol, self.max_joint_step, self.fallback = float(tool_length), tol, max_joint_step, fallback
@@ -118,9 +148,7 @@ class UR5:
     # ------------------------------------------------------------------ forward kinematics
     def fk(self, q) -> np.ndarray:
         """4x4 pose of the tool point in the base frame for joints ``q`` (6,)."""
-        q = np.asarray(q, dtype=float)
-        if q.shape != (6,) or not np.isfinite(q).all():
-            raise ValueError(f"q must be 6 finite joint angles (rad), got shape {q.shape}")
+        q = _joints("q", q)
         T = self._tool
         for i in range(5, -1, -1):
             T = _dh(q[i], DH_D[i], DH_A[i], DH_ALPHA[i]) @ T
@@ -177,6 +205,9 @@ class UR5:
     def ik_all(self, T_tool: np.ndarray) -> list[np.ndarray]:
         """All closed-form solutions (wrapped to (-pi, pi]) that reproduce ``T_tool`` within ``tol``."""
         T_tool = np.asarray(T_tool, dtype=float)
+        if T_tool.shape != (4, 4) or not np.isfinite(T_tool).all():
+            raise ValueError(f"T_tool must be a finite 4x4 pose, got shape {T_tool.shape}")
+        _check_rotation(T_tool[:3, :3])
         return [q for q in self._candidates(T_tool, None) if self._error(q, T_tool) < self.tol]
 
     def _error(self, q, T_tool) -> float:
@@ -200,8 +231,14 @@ class UR5:
         position = np.asarray(position, dtype=float)
         if position.shape != (3,) or not np.isfinite(position).all():
             raise ValueError(f"position must be 3 finite numbers (m), got {position!r}")
-        ref = HOME if q_current is None else np.asarray(q_current, dtype=float)
-        T = self.tool_pose(position, R)
+        if q_current is None:
+            ref = HOME
+        else:
+            ref = _joints("q_current", q_current)
+            if ((ref < self.limits[:, 0]) | (ref > self.limits[:, 1])).any():  # degrees: "no IK solution"
+                raise ValueError(f"q_current must be joint angles (rad) inside the joint limits "
+                                 f"{self.limits.round(4).tolist()}, got {ref.round(4).tolist()}")
+        T = self.tool_pose(position, _check_rotation(R))
         best, dist = None, math.inf
         for q in self._candidates(T, ref):
             q = self._nearest(q, ref)
@@ -243,6 +280,7 @@ class UR5:
     def pybullet_fk(self, q) -> np.ndarray:
         """Tool pose computed by pybullet from the generated URDF (a check on the URDF)."""
         import pybullet as p
+        q = _joints("q", q)
         cid, body, tool = self.pybullet()
         for j in range(6):
             p.resetJointState(body, j, float(q[j]), physicsClientId=cid)
