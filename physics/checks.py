@@ -6,7 +6,7 @@ import numbers
 
 import torch
 
-__all__ = ["check_integer", "as_real", "real", "positive"]
+__all__ = ["check_integer", "is_finite_real", "as_real", "real", "positive", "check_rotations"]
 
 
 def check_integer(name: str, v, lo: int = 1) -> int:
@@ -15,6 +15,12 @@ def check_integer(name: str, v, lo: int = 1) -> int:
     if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or int(v) != v or v < lo:
         raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     return int(v)
+
+
+def is_finite_real(v) -> bool:
+    """Whether ``v`` is a finite real number (not NaN, inf, a bool, a string or a tensor); for checks that raise
+    their own error."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def as_real(name: str, v) -> float:
@@ -35,3 +41,26 @@ def real(name: str, v, positive: bool = False) -> float:
 
 def positive(name: str, v) -> float:
     return real(name, v, positive=True)
+
+
+def check_rotations(name: str, R, tol: float | None = None, single: bool = False) -> None:
+    """``ValueError`` naming ``name`` unless ``R`` (``(..., 3, 3)``, or ``(3, 3)`` with ``single``; a tensor or
+    an array) is finite, orthonormal to ``tol`` and of determinant +1. The default ``tol`` follows ``R``'s dtype:
+    1000 eps, 1e-9 at least and 1e-2 at most (1e-9 in float64, 1.2e-4 in float32). Values are read: not for a
+    traced hot path. A scaled ``R`` scaled what it moved; a reflection mirrored it."""
+    floating = torch.is_tensor(R) and R.is_floating_point()
+    Rd = R.detach().to(torch.float64) if torch.is_tensor(R) else torch.as_tensor(R, dtype=torch.float64)
+    shape_ok = Rd.shape == (3, 3) if single else Rd.shape[-2:] == (3, 3)
+    if not shape_ok or not bool(torch.isfinite(Rd).all()):
+        what = "a finite 3x3 rotation matrix" if single else "finite (..., 3, 3) rotation matrices"
+        raise ValueError(f"{name} must be {what}, got shape {tuple(Rd.shape)}")
+    if not Rd.numel():
+        return
+    if tol is None:
+        tol = min(1e-2, max(1e-9, 1000 * torch.finfo(R.dtype if floating else torch.float64).eps))
+    err = float((Rd.transpose(-1, -2) @ Rd - torch.eye(3, dtype=Rd.dtype, device=Rd.device)).abs().max())
+    det = float(torch.linalg.det(Rd).min())
+    if err > tol or det <= 0:
+        what = "a proper rotation matrix" if single else "proper rotation matrices"
+        raise ValueError(f"{name} must be {what} (R^T R = I to {tol:.0e}, det R = +1), got "
+                         f"|R^T R - I| up to {err:.3g} and det R down to {det:.3g}")

@@ -54,12 +54,12 @@ from __future__ import annotations
 
 import contextlib
 import math
-import numbers
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from .checks import is_finite_real
 from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape, check_integer
 from .cosserat_ode import quat_matrix, shoot
 from .cosserat_fast import fast_chord, fast_lm, flatten_field
@@ -194,7 +194,7 @@ class CosseratSolver:
         if jacobian not in ("forward", "jacfwd"):
             raise ValueError(f"jacobian must be 'forward' or 'jacfwd', got {jacobian!r}")
         tol = (1e-10 if dtype == torch.float64 else 1e-4) if tol is None else tol
-        if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
+        if not (is_finite_real(tol) and tol > 0):
             raise ValueError(f"tol must be a finite positive number, got {tol!r}")
         self.rod, self.dtype, self.device = rod, dtype, device
         self.tol, self.max_iter, self.jacobian = float(tol), check_integer("max_iter", max_iter), jacobian

@@ -32,7 +32,8 @@ from torch import Tensor
 
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
-from .lie import check_rotations, mtm3, mtv3, mv3
+from .checks import check_rotations
+from .lie import mtm3, mtv3, mv3
 from .loads import Loads, magnet_node_loads, magnet_positions
 from .programs import compile_program, tracing
 from .rod import Rod, RodParams
@@ -240,7 +241,7 @@ class LGVI:
             raise ValueError(f"initial_state: R must be (..., {n}, 3, 3), got {tuple(R.shape)}")
         if not (torch.isfinite(p).all() and torch.isfinite(R).all()):
             raise ValueError("initial_state: p and R must be finite")
-        check_rotations(R, "initial_state: R")
+        check_rotations("initial_state: R", R)
         p = torch.broadcast_tensors(p[..., None], R)[0][..., 0]
         for name, x in (("v", v), ("omega", omega)):
             if x is not None and not bool(torch.isfinite(torch.as_tensor(x, **kw)).all()):

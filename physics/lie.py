@@ -21,7 +21,7 @@ from .programs import is_tracing
 __all__ = [
     "hat", "vee", "skew_vee", "so3_exp", "so3_log", "cay", "cay_inv", "dcay_inv",
     "quat_to_matrix", "matrix_to_quat", "quat_normalize", "rot_x", "rot_y", "rot_z",
-    "mtm3", "mv3", "mtv3", "check_rotations",
+    "mtm3", "mv3", "mtv3",
 ]
 
 
@@ -70,14 +70,6 @@ def _check_matrix(R: Tensor, where: str) -> None:
     """ValueError unless ``R`` is (..., 3, 3) (a shape check alone: free, and traced by torch.compile)."""
     if R.shape[-2:] != (3, 3):
         raise ValueError(f"{where}: R must be (..., 3, 3) rotation matrices, got shape {tuple(R.shape)}")
-
-
-def check_rotations(R: Tensor, label: str) -> None:
-    """ValueError ``"<label> must be proper rotations"`` unless ``R`` (..., 3, 3) has ``|R^T R - I|`` within 1e-9
-    (float64; 1e-4 in lower precision) and ``det R > 0`` (values are read: not for a traced hot path)."""
-    orth = float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype, device=R.device)).abs().amax()) if R.numel() else 0.0
-    if orth > (1e-9 if R.dtype == torch.float64 else 1e-4) or bool((torch.linalg.det(R) <= 0).any()):
-        raise ValueError(f"{label} must be proper rotations (max |R^T R - I| = {orth:.2e})")
 
 
 def so3_log(R: Tensor) -> Tensor:

@@ -15,7 +15,6 @@ A scene started at the result stays at rest up to round-off.
 """
 from __future__ import annotations
 
-import math
 import numbers
 
 import numpy as np
@@ -23,9 +22,10 @@ import scipy.optimize
 import torch
 from torch import Tensor
 
+from .checks import check_rotations, is_finite_real
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
-from .lie import check_rotations, so3_exp
+from .lie import so3_exp
 from .loads import UniformField, magnet_node_loads, magnet_poses
 from .rod import Rod
 
@@ -42,13 +42,13 @@ def _check_inputs(n: int, p0, R0, gravity, field, tol, rounds) -> None:
     if not torch.is_tensor(R0) or R0.shape != (n, 3, 3) or not bool(torch.isfinite(R0).all()):
         bad("R0", f"finite node rotations ({n}, 3, 3) for this rod, got "
                   f"{tuple(R0.shape) if torch.is_tensor(R0) else type(R0).__name__}")
-    check_rotations(R0, "static_equilibrium: R0")
+    check_rotations("static_equilibrium: R0", R0)
     for name, x, unit in (("gravity", gravity, "m/s^2"), ("field", field, "T")):
         if x is not None:
             x = torch.as_tensor(x, dtype=torch.float64)
             if x.shape != (3,) or not bool(torch.isfinite(x).all()):
                 bad(name, f"a finite 3-vector ({unit}), got {x.tolist()}")
-    if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
+    if not (is_finite_real(tol) and tol > 0):
         bad("tol", f"a finite number > 0, got {tol!r}")
     if isinstance(rounds, bool) or not isinstance(rounds, numbers.Integral) or rounds < 1:
         bad("rounds", f"an integer >= 1, got {rounds!r}")

@@ -91,7 +91,7 @@ def test_static_equilibrium_fixed_counts_negative_indices_from_the_tip():
                     ({"gravity": (0.0, -9.81)}, "gravity must be a finite 3-vector"),
                     ({"field": (0.0, float("inf"), 0.0)}, r"field must be a finite 3-vector \(T\)"),
                     ({"p0": p0[:3]}, rf"p0 must be finite node positions \({n}, 3\) for this rod, got \(3, 3\)"),
-                    ({"R0": 2 * R0}, "R0 must be proper rotations"), ({"tol": float("nan")}, "tol must be"),
+                    ({"R0": 2 * R0}, "R0 must be proper rotation matrices"), ({"tol": float("nan")}, "tol must be"),
                     ({"rounds": 0}, "rounds must be an integer >= 1, got 0")):
         args = {"p0": p0, "R0": R0, "gravity": g, **kw}
         with pytest.raises(ValueError, match="static_equilibrium: " + msg):

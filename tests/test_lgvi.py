@@ -387,7 +387,7 @@ def test_input_validation():
     sim = LGVI(rod, dt=1e-5)
     with pytest.raises(ValueError, match=r"p must be \(\.\.\., 5, 3\)"):
         sim.initial_state(p=torch.zeros(4, 3, dtype=D))
-    with pytest.raises(ValueError, match="proper rotations"):
+    with pytest.raises(ValueError, match="R must be proper rotation matrices"):
         sim.initial_state(R=2 * torch.eye(3, dtype=D).expand(5, 3, 3))
     with pytest.raises(ValueError, match="finite"):
         sim.initial_state(p=torch.full((5, 3), float("nan"), dtype=D))

@@ -212,9 +212,9 @@ def test_a_moved_magnet_needs_a_proper_rotation():
     zero = torch.zeros(3, dtype=D)
     for bad in (2 * torch.eye(3, dtype=D), torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=D)),
                 torch.eye(3, dtype=D) + 1e-6, torch.stack([torch.eye(3, dtype=D), 2 * torch.eye(3, dtype=D)])):
-        with pytest.raises(ValueError, match="R must be a proper rotation matrix"):
+        with pytest.raises(ValueError, match="R must be proper rotation matrices"):
             model.transformed(bad, zero)
-    with pytest.raises(ValueError, match=r"R must be a finite rotation matrix \(\.\.\., 3, 3\)"):
+    with pytest.raises(ValueError, match=r"R must be finite \(\.\.\., 3, 3\) rotation matrices"):
         model.transformed(torch.eye(2, dtype=D), zero)
     with pytest.raises(ValueError, match="p must be a finite translation"):
         model.transformed(torch.eye(3, dtype=D), torch.zeros(2, dtype=D))

@@ -101,9 +101,9 @@ def test_ur5_settings_and_ik_inputs_are_checked():
     with pytest.raises(ValueError, match=r"q_current must be joint angles \(rad\) inside the joint limits"):
         robot.ik(pos, np.degrees(q))  # degrees: "no inverse-kinematics solution"
     for R in (np.array([0.0, 0.0, -1.0]), 2 * np.eye(3), np.diag([1.0, 1.0, -1.0])):
-        with pytest.raises(ValueError, match="R must be a 3x3 rotation matrix"):  # "no IK solution"
+        with pytest.raises(ValueError, match="R must be a (finite 3x3|proper) rotation matrix"):  # "no IK solution"
             robot.ik(pos, None, R)
-        with pytest.raises(ValueError, match="R must be a 3x3 rotation matrix"):  # False: "unreachable"
+        with pytest.raises(ValueError, match="R must be a (finite 3x3|proper) rotation matrix"):  # False: "unreachable"
             robot.reachable(pos, R)
     with pytest.raises(ValueError, match="T_tool must be a finite 4x4 pose"):  # numpy matmul error
         robot.ik_all(np.eye(3))

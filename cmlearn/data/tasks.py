@@ -34,12 +34,12 @@ Variant 0 is always the printed scene itself: its first 60 % trains and its last
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
 
+from physics.checks import is_finite_real
 from physics.scene import Scene
 from physics.programs import is_tracing
 from physics.scenes_paper2 import NodePulse, SquareTipForce, _min_jerk, path_traced, pulse_traced
@@ -231,7 +231,7 @@ class SurrogateTask:
     def check_duration(self, duration) -> None:
         """ValueError unless ``duration`` (s) is None (a scene's own) or a finite time of at least one step
         ``delta`` (rounded to whole steps as the rollouts do: a shorter one gives no frame to predict)."""
-        if duration is not None and not (isinstance(duration, numbers.Real) and math.isfinite(duration)
+        if duration is not None and not (is_finite_real(duration)
                                          and round(duration / self.delta) >= 1):
             raise ValueError(f"duration must be a time of at least one surrogate step ({self.delta:g} s on task "
                              f"{self.name!r}), or None for the scene's, got {duration!r}")

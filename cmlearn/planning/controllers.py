@@ -24,6 +24,7 @@ import numbers
 
 import numpy as np
 
+from physics.checks import is_finite_real
 from .attractor import AttractorDynamics, Superellipse
 from .errt import ERRT, segment_hits
 from .quadtree import quadtree_rectangles
@@ -49,10 +50,10 @@ def _check_settings(grey=None, lengths=None, positive=None, counts=None) -> None
         if not (isinstance(v, numbers.Real) and 0 <= v <= 255):
             raise ValueError(f"{name} (a grey level: darker is an obstacle) must be in [0, 255], got {v!r}")
     for name, v in (lengths or {}).items():
-        if not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
+        if not (is_finite_real(v) and v >= 0):
             raise ValueError(f"{name} must be finite and >= 0 (m), got {v!r}")
     for name, v in (positive or {}).items():
-        if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+        if not (is_finite_real(v) and v > 0):
             raise ValueError(f"{name} must be finite and > 0, got {v!r}")
     for name, v in (counts or {}).items():
         if not (isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1):

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from physics.checks import is_finite_real
 from .maps import Map
 
 __all__ = ["CameraSpec", "PybulletCamera"]
@@ -41,7 +42,7 @@ class CameraSpec:
             raise ValueError(f"size must be an int >= 16 pixels, got {self.size!r}")
         for name in ("height", "extent"):
             v = getattr(self, name)
-            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+            if not (is_finite_real(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0 (m), got {v!r}")
         if not NEAR < self.height < FAR - 0.01:  # outside, the table was clipped: a blank (white) view, no walls
             raise ValueError(f"height must be in ({NEAR}, {FAR - 0.01}) m (the table between the camera's clipping "
@@ -84,7 +85,7 @@ class PybulletCamera:
 
     def render(self, x: float, y: float) -> np.ndarray:
         """Grayscale (size, size) uint8 view from the end-effector at (x, y)."""
-        if not all(isinstance(v, numbers.Real) and math.isfinite(v) for v in (x, y)):  # NaN gave a white view
+        if not all(is_finite_real(v) for v in (x, y)):  # NaN gave a white view
             raise ValueError(f"x and y must be finite numbers (m), got {x!r}, {y!r}")
         p, s = self.p, self.spec
         view = p.computeViewMatrix([x, y, s.height], [x, y, 0.0], [0, 1, 0])

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physics.checks import check_integer
+from physics.checks import check_integer, is_finite_real
 
 __all__ = ["Map", "procedural_map", "load_map", "map_seeds"]
 
@@ -184,10 +184,6 @@ class Map:
 
 
 # ------------------------------------------------------------------- procedural maps
-def _finite(v) -> bool:
-    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-
-
 def _segments_free(shape, res, segs) -> np.ndarray:
     H, W = shape
     ys = (H - 0.5 - np.arange(H))[:, None] * res
@@ -210,14 +206,14 @@ def procedural_map(seed: int, size: tuple[float, float] = (0.4, 0.4), resolution
     if not isinstance(seed, (int, np.integer)):
         raise TypeError(f"seed must be an int, got {type(seed).__name__}")
     for name, v in (("size", size), ("width", width)):
-        if not (np.shape(v) == (2,) and all(_finite(x) and x > 0 for x in v)):
+        if not (np.shape(v) == (2,) and all(is_finite_real(x) and x > 0 for x in v)):
             raise ValueError(f"{name} must be two finite lengths > 0 (m), got {v!r}")
     for name, v in (("resolution", resolution), ("lattice", lattice), ("narrowing", narrowing)):
-        if not (_finite(v) and v > 0):
+        if not (is_finite_real(v) and v > 0):
             raise ValueError(f"{name} must be finite and > 0 (m), got {v!r}")
     if not (0 < narrowing <= width[0] <= width[1]):
         raise ValueError(f"need 0 < narrowing <= width[0] <= width[1], got {narrowing}, {width}")
-    if not (_finite(p_narrow) and 0 <= p_narrow <= 1):  # 30 (%) narrowed every edge, NaN none
+    if not (is_finite_real(p_narrow) and 0 <= p_narrow <= 1):  # 30 (%) narrowed every edge, NaN none
         raise ValueError(f"p_narrow (a probability) must be in [0, 1], got {p_narrow!r}")
     dead_ends = check_integer("dead_ends", dead_ends, lo=0)  # a negative count gave none
     rng = np.random.default_rng(int(seed))

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from physics.checks import as_real, check_integer
+from physics.checks import check_integer, real
 
 from .env import ACTIONS
 
@@ -28,7 +28,7 @@ class GeodesicTeacher:
                  revisit_penalty: float = 0.003, memory: int = 8):
         for name, v in (("clearance_weight", clearance_weight), ("clearance_cap", clearance_cap),
                         ("revisit_penalty", revisit_penalty)):
-            if not (np.isfinite(as_real(name, v)) and v >= 0):
+            if real(name, v) < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
         memory = check_integer("memory", memory, lo=0)  # -1 kept all but the first position, 2.5 ran as 2
         self.env = env.unwrapped

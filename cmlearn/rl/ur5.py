@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import hashlib
 import math
-import numbers
 import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from physics.checks import check_rotations, is_finite_real
 from ..io import write_text_atomic
 
 __all__ = ["UR5", "IKError", "DH_D", "DH_A", "DH_ALPHA", "DOWN", "JOINT_SPEED", "TOOL_SPEED", "ur5_urdf", "write_urdf"]
@@ -57,7 +57,7 @@ def _inv(T: np.ndarray) -> np.ndarray:
 
 
 def _check_tool_length(tool_length) -> float:
-    if not (isinstance(tool_length, numbers.Real) and math.isfinite(tool_length) and 0 <= tool_length < 0.5):
+    if not (is_finite_real(tool_length) and 0 <= tool_length < 0.5):
         raise ValueError(f"tool_length must be in [0, 0.5) m, got {tool_length!r}")
     return float(tool_length)
 
@@ -70,16 +70,13 @@ def _joints(name: str, q) -> np.ndarray:
     return q
 
 
-def _check_rotation(R) -> np.ndarray:
-    """``R`` as a 3x3 array; ValueError unless it is a proper rotation matrix (the IK reported a valid but
+def _rotation(R) -> np.ndarray:
+    """``R`` as a 3x3 array; ValueError unless it is a proper rotation matrix to 1e-6 (the IK reported a valid but
     unreachable pose as "no inverse-kinematics solution", and :meth:`UR5.reachable` answered False)."""
     if R is DOWN:
         return R
-    R = np.asarray(R, dtype=float)
-    if R.shape != (3, 3) or not np.isfinite(R).all() or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 \
-            or np.linalg.det(R) < 0:
-        raise ValueError(f"R must be a 3x3 rotation matrix (orthonormal, det +1), got {R.tolist()}")
-    return R
+    check_rotations("R", R, tol=1e-6, single=True)
+    return np.asarray(R, dtype=float)
 
 
 def ur5_urdf(tool_length: float = 0.06) -> str:
@@ -135,7 +132,7 @@ class UR5:
                  fallback: str | None = None):
         tool_length = _check_tool_length(tool_length)
         for name, v in (("tol", tol), ("max_joint_step", max_joint_step)):
-            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):  # NaN passed every check
+            if not (is_finite_real(v) and v > 0):  # NaN passed every check
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         if fallback not in (None, "pybullet"):
             raise ValueError(f"fallback must be None or 'pybullet', got {fallback!r}")
@@ -207,7 +204,7 @@ class UR5:
         T_tool = np.asarray(T_tool, dtype=float)
         if T_tool.shape != (4, 4) or not np.isfinite(T_tool).all():
             raise ValueError(f"T_tool must be a finite 4x4 pose, got shape {T_tool.shape}")
-        _check_rotation(T_tool[:3, :3])
+        check_rotations("T_tool[:3, :3]", T_tool[:3, :3], tol=1e-6, single=True)
         return [q for q in self._candidates(T_tool, None) if self._error(q, T_tool) < self.tol]
 
     def _error(self, q, T_tool) -> float:
@@ -238,7 +235,7 @@ class UR5:
             if ((ref < self.limits[:, 0]) | (ref > self.limits[:, 1])).any():  # degrees: "no IK solution"
                 raise ValueError(f"q_current must be joint angles (rad) inside the joint limits "
                                  f"{self.limits.round(4).tolist()}, got {ref.round(4).tolist()}")
-        T = self.tool_pose(position, _check_rotation(R))
+        T = self.tool_pose(position, _rotation(R))
         best, dist = None, math.inf
         for q in self._candidates(T, ref):
             q = self._nearest(q, ref)

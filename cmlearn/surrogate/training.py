@@ -11,13 +11,12 @@ second-difference scale, the same for every node, so the loss weighs millimetres
 from __future__ import annotations
 
 import atexit
-import math
-import numbers
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
+from physics.checks import is_finite_real
 from cmlearn.data.windows import RolloutWindows, node_wrench, split_ranges
 from cmlearn.models import NodeLSTMSurrogate
 
@@ -161,9 +160,9 @@ class SurrogateModule(L.LightningModule):
             raise ValueError(f"motion_floor must be > 0 metres, got {motion_floor!r}")
         if not one_step_weight >= 0:
             raise ValueError(f"one_step_weight must be >= 0, got {one_step_weight!r}")
-        if not (isinstance(noise, numbers.Real) and math.isfinite(noise) and noise >= 0):  # NaN skipped every batch
+        if not (is_finite_real(noise) and noise >= 0):  # NaN skipped every batch
             raise ValueError(f"noise must be a finite number >= 0 (metres; 0 for none), got {noise!r}")
-        if not (isinstance(lr, numbers.Real) and math.isfinite(lr) and lr >= 0):
+        if not (is_finite_real(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0 (0: the weights stay), got {lr!r}")
         if not (isinstance(horizon, int) and horizon >= 1):
             raise ValueError(f"horizon must be an integer >= 1 (steps), got {horizon!r}")

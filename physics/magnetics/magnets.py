@@ -20,6 +20,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from ..checks import check_rotations
 from .base import FieldModel, check_points
 from .dipole import MU0
 from .sources import DipoleSet
@@ -177,21 +178,6 @@ class SphereMagnet(_Magnet):
         return ((points - p) ** 2).sum(-1) < (self.diameter / 2) ** 2
 
 
-def _check_rotation(R) -> None:
-    """Raise ``ValueError`` unless ``R`` (..., 3, 3) is finite, orthonormal and of determinant +1 to within
-    ``100 eps`` of its own dtype (1e-9 at least, 1e-2 at most); a scaled or reflected ``R`` moved the dipoles
-    and scaled or mirrored their moments."""
-    floating = isinstance(R, Tensor) and R.is_floating_point()
-    Rd = R.detach().to(torch.float64) if isinstance(R, Tensor) else torch.as_tensor(R, dtype=torch.float64)
-    if Rd.shape[-2:] != (3, 3) or not bool(torch.isfinite(Rd).all()):
-        raise ValueError(f"R must be a finite rotation matrix (..., 3, 3), got shape {tuple(Rd.shape)}")
-    tol = min(1e-2, max(1e-9, 100 * torch.finfo(R.dtype if floating else torch.float64).eps))
-    err = (Rd.transpose(-1, -2) @ Rd - torch.eye(3, dtype=Rd.dtype, device=Rd.device)).abs()
-    if Rd.numel() and (float(err.max()) > tol or bool((torch.linalg.det(Rd) <= 0).any())):
-        raise ValueError(f"R must be a proper rotation matrix (R^T R = I to {tol:.0e}, det R = +1), got |R^T R - I| "
-                         f"up to {float(err.max()):.3g} and det R down to {float(torch.linalg.det(Rd).min()):.3g}")
-
-
 class MagnetField(FieldModel):
     """Field of a permanent magnet represented by the dipole set ``base`` (at the magnet's own pose),
     optionally moved further by ``x -> R x + p`` (tensors, differentiable; e.g. a rotating magnet).
@@ -204,7 +190,7 @@ class MagnetField(FieldModel):
     def transformed(self, R: Tensor, p: Tensor) -> "MagnetField":
         """The magnet moved further by ``x -> R x + p``: ``R`` (..., 3, 3) a proper rotation (orthonormal, det +1,
         to a tolerance of its dtype's precision), ``p`` (..., 3) (m)."""
-        _check_rotation(R)
+        check_rotations("R", R)
         dt = self.base.positions.dtype
         R, p = torch.as_tensor(R, dtype=dt), torch.as_tensor(p, dtype=dt)
         if p.shape[-1:] != (3,) or not bool(torch.isfinite(p).all()):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..checks import check_integer as integer, positive, real
+from ..checks import check_integer as integer, check_rotations, positive, real
 
 __all__ = ["real", "positive", "integer", "vec3", "rotation"]
 
@@ -23,9 +23,5 @@ def vec3(name, v, nonzero=False) -> tuple:
 
 
 def rotation(value, name: str = "orientation") -> tuple[tuple[float, ...], ...]:
-    R = torch.as_tensor(value, dtype=torch.float64)
-    if R.shape != (3, 3) or not bool(torch.isfinite(R).all()):
-        raise ValueError(f"{name} must be a finite 3x3 rotation matrix, got shape {tuple(R.shape)}")
-    if float((R.T @ R - torch.eye(3, dtype=R.dtype)).abs().max()) > 1e-9 or float(torch.linalg.det(R)) < 0:
-        raise ValueError(f"{name} must be a proper rotation matrix (R^T R = I, det R = +1)")
-    return tuple(tuple(row) for row in R.tolist())
+    check_rotations(name, value, tol=1e-9, single=True)
+    return tuple(tuple(row) for row in torch.as_tensor(value, dtype=torch.float64).tolist())
