@@ -6,7 +6,7 @@ import numbers
 
 import torch
 
-__all__ = ["check_integer", "is_finite_real", "as_real", "real", "positive", "check_rotations"]
+__all__ = ["check_integer", "is_int", "is_finite_real", "as_real", "real", "positive", "check_rotations"]
 
 
 def check_integer(name: str, v, lo: int = 1) -> int:
@@ -15,6 +15,12 @@ def check_integer(name: str, v, lo: int = 1) -> int:
     if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or int(v) != v or v < lo:
         raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     return int(v)
+
+
+def is_int(v) -> bool:
+    """Whether ``v`` is an integer type (a Python or numpy int, not a bool; 2.0 is not), where a float would fail
+    later (``range``, indexing); :func:`check_integer` accepts whole floats."""
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
 
 
 def is_finite_real(v) -> bool:

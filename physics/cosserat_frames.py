@@ -20,7 +20,7 @@ import math
 import torch
 from torch import Tensor
 
-from .cosserat import check_integer
+from .checks import check_integer
 from .cosserat_fast import chord_setup, flatten_field, lm_setup, run_chord, run_lm
 from .cosserat_shooting import (_LAM_WARM, CHORD_MAX, CosseratSolver, StaticSolution, _broadcasts_to, _needs_grad,
                                 tensor_versions)

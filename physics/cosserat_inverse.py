@@ -11,16 +11,14 @@ Example: the uniform field that turns a tip-magnet rod's tip to a target angle::
 from __future__ import annotations
 
 import math
-import numbers
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from .cosserat import check_integer
+from .checks import check_integer, is_int, positive, real
 from .cosserat_shooting import CosseratSolver, StaticSolution
 from .loads import UniformField
-from .magnetics.validate import positive, real
 
 __all__ = ["FieldFit", "fit_uniform_field", "tip_angle"]
 
@@ -29,7 +27,7 @@ def tip_angle(sol: StaticSolution, plane: tuple[int, int] = (0, 2)) -> Tensor:
     """Angle (rad) of the tip tangent (body E3 of the tip) in the world plane ``plane`` = (a, b),
     measured from axis b towards axis a (default: in the x-z plane from +z towards +x)."""
     axes = isinstance(plane, (tuple, list)) and len(plane) == 2 and all(
-        isinstance(a, numbers.Integral) and not isinstance(a, bool) and -3 <= a <= 2 for a in plane)
+        is_int(a) and -3 <= a <= 2 for a in plane)
     if not (axes and plane[0] % 3 != plane[1] % 3):  # (0, 0) gave 45 deg whatever the shape, (0, 3) an IndexError
         raise ValueError(f"plane must be two different world axes (a, b) out of 0, 1, 2 (x, y, z), got {plane!r}")
     t = sol.R[..., -1, :, 2]

@@ -59,8 +59,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .checks import is_finite_real
-from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape, check_integer
+from .checks import check_integer, is_finite_real
+from .cosserat import CosseratParams, CosseratRod, StaticLoads, broadcast_shape
 from .cosserat_ode import quat_matrix, shoot
 from .cosserat_fast import fast_chord, fast_lm, flatten_field
 from .cosserat_lanes import lane_chunk, lane_step, lane_tables, shoot_lanes, step_table

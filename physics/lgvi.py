@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import numbers
 import warnings
 from dataclasses import dataclass, field
 from enum import Enum
@@ -32,7 +31,7 @@ from torch import Tensor
 
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
-from .checks import check_rotations
+from .checks import check_rotations, is_int
 from .lie import mtm3, mtv3, mv3
 from .loads import Loads, magnet_node_loads, magnet_positions
 from .programs import compile_program, tracing
@@ -175,7 +174,7 @@ class LGVI:
             raise ValueError("LGVI.check_every must be >= 1")
         for name in ("newton_max_iter", "newton_iters"):
             n = getattr(self, name)
-            if n is not None and not (isinstance(n, numbers.Integral) and n >= 1):
+            if n is not None and not (is_int(n) and n >= 1):
                 raise ValueError(f"LGVI.{name} (Newton iterations of the rotation update) must be an integer >= 1, "
                                  f"got {n!r}")
         self.stability_estimate = None
@@ -363,7 +362,7 @@ class LGVI:
         refreshed at the same steps as in the eager rollout. ``self.eager_blocks`` counts the blocks so replayed in
         the last call.
         """
-        if not all(isinstance(n, numbers.Integral) and n >= 1 for n in (steps_per_call, newton_iters)):
+        if not all(is_int(n) and n >= 1 for n in (steps_per_call, newton_iters)):
             raise ValueError(f"compiled_rollout: steps_per_call and newton_iters must be integers >= 1, got "
                              f"{steps_per_call!r} and {newton_iters!r}")
         if n_steps % steps_per_call:

@@ -8,7 +8,6 @@ per-element 12x12 Hessians computed with ``torch.func``.
 from __future__ import annotations
 
 import functools
-import numbers
 
 import numpy as np
 import scipy.linalg
@@ -16,6 +15,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
+from .checks import is_int
 from .elastic import elastic_energy
 from .lie import so3_exp
 
@@ -78,7 +78,7 @@ def frequencies(rod, bc: str = "clamped-free", n_modes: int = 6, energy_fn=elast
     if any(k != 0 for k in getattr(rod, "intrinsic_curvature", (0.0, 0.0, 0.0))):
         raise ValueError("frequencies: the modes are those about the straight rod, and a rod with "
                          f"intrinsic_curvature {tuple(rod.intrinsic_curvature)} is not at rest straight")
-    if isinstance(n_modes, bool) or not (isinstance(n_modes, numbers.Integral) and n_modes >= 1):  # numpy ints too
+    if not (is_int(n_modes) and n_modes >= 1):  # numpy ints too
         raise ValueError(f"frequencies: n_modes must be an integer >= 1, got {n_modes!r}")
     A = _reduced(rod, bc, energy_fn)
     n_rigid = 6 if bc == "free-free" else 0

@@ -15,14 +15,13 @@ A scene started at the result stays at rest up to round-off.
 """
 from __future__ import annotations
 
-import numbers
 
 import numpy as np
 import scipy.optimize
 import torch
 from torch import Tensor
 
-from .checks import check_rotations, is_finite_real
+from .checks import check_rotations, is_finite_real, is_int
 from .elastic import elastic_energy, internal_loads, relative_cayley
 from .errors import SolverError
 from .lie import so3_exp
@@ -50,7 +49,7 @@ def _check_inputs(n: int, p0, R0, gravity, field, tol, rounds) -> None:
                 bad(name, f"a finite 3-vector ({unit}), got {x.tolist()}")
     if not (is_finite_real(tol) and tol > 0):
         bad("tol", f"a finite number > 0, got {tol!r}")
-    if isinstance(rounds, bool) or not isinstance(rounds, numbers.Integral) or rounds < 1:
+    if not is_int(rounds) or rounds < 1:
         bad("rounds", f"an integer >= 1, got {rounds!r}")
 
 
@@ -68,7 +67,7 @@ def static_equilibrium(rod: Rod, p0: Tensor, R0: Tensor, *, fixed=(0,), gravity=
     n = rod.n_nodes
     _check_inputs(n, p0, R0, gravity, field, tol, rounds)
     fixed = tuple(fixed)
-    if not all(isinstance(i, numbers.Integral) and not isinstance(i, bool) or torch.is_tensor(i) and i.numel() == 1
+    if not all(is_int(i) or torch.is_tensor(i) and i.numel() == 1
                and not i.is_floating_point() and i.dtype != torch.bool for i in fixed):  # 1.7 fixed node 1, silently
         raise ValueError(f"static_equilibrium: fixed must hold integer node indices, got {fixed}")
     fixed = tuple(int(i) for i in fixed)

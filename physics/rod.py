@@ -14,14 +14,13 @@ entirely to the tip node).
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from .checks import as_real as _real
+from .checks import as_real as _real, is_int
 
 __all__ = [
     "Material", "CircularSection", "SquareSection", "Magnet", "Rod", "RodParams", "StabilityEstimate",
@@ -246,7 +245,7 @@ class Rod:
         if not isinstance(self.material, Material):
             raise TypeError(f"Rod.material must be a Material, got {type(self.material)}")
         if self.element_lengths is None:
-            if not isinstance(self.n_elements, numbers.Integral) or isinstance(self.n_elements, bool) \
+            if not is_int(self.n_elements) \
                     or self.n_elements < 1:
                 raise ValueError(f"Rod.n_elements must be an integer >= 1, got {self.n_elements!r}")
         else:

@@ -30,8 +30,9 @@ import math
 
 import torch
 
+from .checks import positive, real
 from .loads import Loads, UniformField
-from .magnetics.validate import positive, real, vec3
+from .magnetics.validate import vec3
 from .programs import is_tracing
 from .rod import CircularSection, Magnet, Material, Rod, SquareSection
 from .scene import G_EARTH, Scene, dipole_moment, table_to_si

@@ -43,9 +43,9 @@ from dataclasses import replace
 
 import torch
 
-from .checks import check_integer
+from .checks import check_integer, real
 from .loads import Loads
-from .magnetics.validate import real, vec3
+from .magnetics.validate import vec3
 from .programs import is_tracing
 from .rod import CircularSection, Material, Rod
 from .scene import Scene

@@ -20,7 +20,6 @@ remains where the curvature changes fast).
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Sequence
 
 import numpy as np
@@ -28,6 +27,7 @@ import scipy.optimize
 import torch
 from torch import Tensor
 
+from .checks import is_int
 from .lie import so3_exp
 
 __all__ = ["strain_free_positions", "bent_cantilever", "cantilever_rotation_for_offset",
@@ -183,7 +183,7 @@ def ellipse_loop(n_elements: int, width: float, height: float, element_length: f
     its ``n_elements`` chords add up to less than that fraction of the ellipse's perimeter. A mesh whose
     equal elements cannot close the loop at all is a ``ValueError``.
     """
-    if isinstance(n_elements, bool) or not isinstance(n_elements, numbers.Integral) or n_elements < 3:
+    if not is_int(n_elements) or n_elements < 3:
         raise ValueError(f"ellipse_loop: n_elements must be an integer >= 3, got {n_elements!r}")
     if not all(math.isfinite(x) and x > 0 for x in (width, height)):
         raise ValueError(f"ellipse_loop: width and height must be finite and > 0 (m), got {width!r}, {height!r}")

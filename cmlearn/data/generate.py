@@ -14,13 +14,13 @@ the single LGVI runs an evaluation compares a surrogate with (:func:`reference_r
 from __future__ import annotations
 
 import hashlib
-import numbers
 import time
 from pathlib import Path
 
 import torch
 
 import physics
+from physics.checks import is_int
 from cmlearn.io import save_torch_atomic
 
 from .tasks import SurrogateTask, get_task
@@ -154,7 +154,7 @@ def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, dur
     if not (isinstance(n_variants, int) and not isinstance(n_variants, bool) and n_variants >= 1):
         raise ValueError(f"n_variants must be an integer >= 1 (the printed scene and random variants), got "
                          f"{n_variants!r}")
-    if not (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and seed >= 0):
+    if not (is_int(seed) and seed >= 0):
         raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
     task.check_duration(duration)
     if task.custom:

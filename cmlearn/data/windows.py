@@ -10,10 +10,10 @@ its step from frame k + 1 to frame k uses the force of interval k. A step that h
 (or pump) energy fits the reversed windows badly, so training on both directions penalises that."""
 from __future__ import annotations
 
-import numbers
-
 from torch import Tensor
 from torch.utils.data import Dataset
+
+from physics.checks import is_int
 
 __all__ = ["RolloutWindows", "node_wrench", "split_ranges"]
 
@@ -67,7 +67,7 @@ class RolloutWindows(Dataset):
         if inputs is not None and time_reversal:
             raise ValueError("time_reversal: a closed-loop wrench model's inputs are not reversible windows")
         for name, v, low in (("eta", eta, 0), ("horizon", horizon, 1), ("stride", stride, 1)):
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < low:  # 2.0 failed in range()
+            if not is_int(v) or v < low:  # 2.0 failed in range()
                 raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
         V, T = positions.shape[:2]
         if tuple(wrench.shape[:2]) != (V, T - 1):

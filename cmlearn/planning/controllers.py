@@ -24,7 +24,7 @@ import numbers
 
 import numpy as np
 
-from physics.checks import is_finite_real
+from physics.checks import is_finite_real, is_int
 from .attractor import AttractorDynamics, Superellipse
 from .errt import ERRT, segment_hits
 from .quadtree import quadtree_rectangles
@@ -56,7 +56,7 @@ def _check_settings(grey=None, lengths=None, positive=None, counts=None) -> None
         if not (is_finite_real(v) and v > 0):
             raise ValueError(f"{name} must be finite and > 0, got {v!r}")
     for name, v in (counts or {}).items():
-        if not (isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1):
+        if not (is_int(v) and v >= 1):
             raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
 
 

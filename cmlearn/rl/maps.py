@@ -14,14 +14,13 @@ each edge as a channel whose width varies between its nodes, with occasional nar
 from __future__ import annotations
 
 import math
-import numbers
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from physics.checks import check_integer, is_finite_real
+from physics.checks import check_integer, is_finite_real, is_int
 
 __all__ = ["Map", "procedural_map", "load_map", "map_seeds"]
 
@@ -110,7 +109,7 @@ class Map:
         """``node`` as a grid node (i, j); ValueError naming ``name`` unless it is two integers inside the grid (a
         negative index wrapped round to a node at the other side, a fractional one was truncated)."""
         if not (len(np.shape(node)) == 1 and len(node) == 2 and all(
-                isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in node)
+                is_int(v) for v in node)
                 and 0 <= node[0] < self.nx and 0 <= node[1] < self.ny):
             raise ValueError(f"{name} must be a grid node: integers (i, j) with 0 <= i < {self.nx} and "
                              f"0 <= j < {self.ny}, got {node!r}")

@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from physics.checks import is_int
+
 __all__ = ["ParticleParams", "ForceMap", "ParticleSim", "force_map", "direct_force"]
 
 
@@ -75,7 +77,7 @@ class ParticleParams:
             raise ValueError(f"need 0 <= mu_kinetic <= mu_static, got {self.mu_kinetic}, {self.mu_static}")
         if self.magnet_height - self.magnet_dims[2] / 2 <= self.particle_diameter:
             raise ValueError(f"magnet_height={self.magnet_height} leaves no gap above the particle")
-        if isinstance(self.magnet_dipoles, bool) or not isinstance(self.magnet_dipoles, numbers.Integral) \
+        if not is_int(self.magnet_dipoles) \
                 or self.magnet_dipoles < 1:
             raise ValueError(f"magnet_dipoles must be an int >= 1, got {self.magnet_dipoles!r}")
 
