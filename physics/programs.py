@@ -63,8 +63,9 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     run by its model runner (the JIT wrapper turns every constant, two dozen in a Simulation III step, into a tensor
     handle at every call; ``docs/surrogates.md``, "Programs compiled ahead of time"), in a folder named for the
     graph and its constants' values (:func:`_library_dir`: programs that differ only in their constants, two models
-    of one architecture, are two libraries). Its inputs' sizes and strides are checked as the JIT wrapper checks
-    them (``AOTI_RUNTIME_CHECK_INPUTS``, set here unless set), strides of size-1 dimensions included. For the small
+    of one architecture, are two libraries), built once and loaded from there by later programs and processes. Its
+    inputs' sizes and strides are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set here
+    unless set), strides of size-1 dimensions included. For the small
     programs of a real-time step; the Cosserat solver's long programs keep the default path.
 
     ``fast_exp``: the C++ programs' vectorised ``exp`` as ATen's inline ``exp_u20`` (a degree-5 polynomial after
@@ -110,20 +111,20 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
         {"max_fusion_size": 100000, "memory_planning": True, "memory_pool": "intermediates"}
     if not vectorize:
         options["cpp.vec_isa_ok"] = False
-    if mode == "aot":  # a library of its own for each graph, its constants and options (see _library_dir)
-        options = {**options, "aot_inductor.output_path": _library_dir(gm, inputs, options, fast_exp)}
-    elif fast_exp:  # apart from programs with Sleef's exp: the JIT path's caches are keyed on the graph
+    if fast_exp and mode != "aot":  # apart from programs with Sleef's exp: the JIT caches are keyed on the graph
         options = {**options, "force_disable_caches": True}
     attempts = [options]
     if gemm_templates:
         attempts.insert(0, {**options, "freezing": True, "max_autotune": True, "max_autotune_gemm_backends": "CPP"})
-    for opts in attempts:
+    for i, opts in enumerate(attempts):
+        if mode == "aot":  # a library of its own for each graph, its constants and options (see _library_dir)
+            opts = {**opts, "aot_inductor.output_path": _library_dir(gm, inputs, opts, fast_exp)}
         try:
             with torch.no_grad(), _exp_u20() if fast_exp else contextlib.nullcontext():
                 prog = _compile(gm, list(inputs), opts, mode)
             break
         except Exception as err:  # noqa: BLE001 - e.g. NoValidChoicesError: a product no template covers
-            if opts is attempts[-1]:
+            if i == len(attempts) - 1:
                 raise
             warnings.warn(f"compile_program: C++ GEMM templates failed ({type(err).__name__}: {err}); "
                           "compiling with library matrix products instead", RuntimeWarning, stacklevel=2)
@@ -141,16 +142,38 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     return single
 
 
+def _aot_library(gm, inputs: list, options: dict) -> str:
+    """The path of the ahead-of-time library for ``gm`` in its folder (:func:`_library_dir`): the one built there
+    before, named in the folder's ``library`` file once it was built, else a new build (a Simulation III step
+    takes seconds, the LGVI's four steps about a minute: each program, process and test built its own before)."""
+    folder = options["aot_inductor.output_path"]
+    record = os.path.join(folder, "library")
+    try:
+        with open(record) as f:
+            path = os.path.join(folder, f.read().strip())
+        if os.path.isfile(path):
+            return path
+    except OSError:  # not built yet (or unreadable: build it again)
+        pass
+    path = torch._inductor.aot_compile(gm, tuple(inputs), options={**options, "aot_inductor.package": False})
+    tmp = f"{record}.{os.getpid()}.tmp"  # written whole, then renamed: a reader sees no half name
+    with open(tmp, "w") as f:
+        f.write(os.path.basename(path))
+    os.replace(tmp, record)
+    return path
+
+
 def _library_dir(gm, inputs, options: dict, fast_exp: bool) -> str:
     """The folder (in inductor's cache) of the ahead-of-time library for the traced graph ``gm``: named for a digest
-    of its code, the values of its constants, the inputs' layout, the options and ``fast_exp``. Inductor names a
-    library for its wrapper code alone, which is the same for graphs that differ only in their constants' values
-    (two models of one architecture, two LGVIs of one rod under different forces) or in the ``exp`` generated, and a
-    library loaded twice from one path in a process is the first one: before 2026-12-02 the second such program ran
-    with the first one's constants."""
+    of its code, the values of its constants, the inputs' layout, the options, ``fast_exp``, the torch build and the
+    CPU's vector instructions. Inductor names a library for its wrapper code alone, which is the same for graphs that
+    differ only in their constants' values (two models of one architecture, two LGVIs of one rod under different
+    forces) or in the ``exp`` generated, and a library loaded twice from one path in a process is the first one:
+    before 2026-12-02 the second such program ran with the first one's constants."""
     import hashlib
     h = hashlib.sha256()
-    for part in (torch.__version__, gm.code, repr(sorted(options.items())), str(fast_exp),
+    for part in (torch.__version__, torch.__file__, torch.backends.cpu.get_cpu_capability(), gm.code,
+                 repr(sorted(options.items())), str(fast_exp),
                  repr([(tuple(x.shape), x.stride(), str(x.dtype), str(x.device)) for x in inputs])):
         h.update(part.encode())
     for node in gm.graph.nodes:
@@ -165,7 +188,8 @@ def _library_dir(gm, inputs, options: dict, fast_exp: bool) -> str:
             h.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
         else:
             h.update(repr(value).encode())
-    return os.path.join("cmlearn_programs", h.hexdigest()[:32])
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+    return os.path.join(cache_dir(), "cmlearn_programs", h.hexdigest()[:32])
 
 
 def _exp_u20():
@@ -187,8 +211,7 @@ def _compile(gm, inputs: list, options: dict, mode: str):
         return torch._inductor.compile(gm, inputs, options=options)
     if mode == "aot":
         os.environ.setdefault("AOTI_RUNTIME_CHECK_INPUTS", "1")  # read by each library at its first call
-        path = torch._inductor.aot_compile(gm, tuple(inputs), options={**options, "aot_inductor.package": False})
-        return torch._C._aoti.AOTIModelContainerRunnerCpu(path, 1).run
+        return torch._C._aoti.AOTIModelContainerRunnerCpu(_aot_library(gm, inputs, options), 1).run
     from torch._inductor.compile_fx import compile_fx_inner
     with torch._inductor.config.patch(options):
         return compile_fx_inner(gm, inputs, cpp_wrapper=True, is_inference=True)

@@ -97,3 +97,24 @@ def test_a_scalar_program_equals_the_vectorised_one_on_trailing_three_vectors(mo
     for vec in (True, False):
         got = compile_program(fn, [a, b], **MODES[mode], vectorize=vec)(a, b)
         assert torch.allclose(got, want, rtol=0, atol=1e-14)
+
+
+def test_an_ahead_of_time_library_is_built_once_and_loaded_by_later_programs(monkeypatch):
+    """A second program of the same graph, constants and inputs' layout loads the library built for the first (each
+    built its own before: about a minute for the LGVI's four steps); other constants, or GEMM templates, build
+    another."""
+    import time
+
+    import torch._inductor
+    builds, build = [], torch._inductor.aot_compile
+    monkeypatch.setattr(torch._inductor, "aot_compile", lambda *a, **k: builds.append(1) or build(*a, **k))
+    x = torch.randn(5, 4)
+    W = torch.randn(4, 3) * (1 + time.time_ns() % 10**9 * 1e-12)  # constants no earlier run built a library for
+    first = compile_program(lambda x: torch.tanh(x @ W), [x], direct=True)
+    again = compile_program(lambda x: torch.tanh(x @ W), [x], direct=True)
+    assert len(builds) == 1 and torch.equal(first(x), again(x)) and torch.allclose(again(x), torch.tanh(x @ W))
+    W2 = W.flip(0)
+    other = compile_program(lambda x: torch.tanh(x @ W2), [x], direct=True)
+    assert len(builds) == 2 and torch.allclose(other(x), torch.tanh(x @ W2))
+    compile_program(lambda x: torch.tanh(x @ W), [x], direct=True, gemm_templates=True)
+    assert len(builds) == 3
