@@ -245,8 +245,7 @@ class Rod:
         if not isinstance(self.material, Material):
             raise TypeError(f"Rod.material must be a Material, got {type(self.material)}")
         if self.element_lengths is None:
-            if not is_int(self.n_elements) \
-                    or self.n_elements < 1:
+            if not is_int(self.n_elements) or self.n_elements < 1:
                 raise ValueError(f"Rod.n_elements must be an integer >= 1, got {self.n_elements!r}")
         else:
             ls = tuple(float(x) for x in self.element_lengths)

@@ -101,8 +101,8 @@ def test_a_scalar_program_equals_the_vectorised_one_on_trailing_three_vectors(mo
 
 def test_an_ahead_of_time_library_is_built_once_and_loaded_by_later_programs(monkeypatch):
     """A second program of the same graph, constants and inputs' layout loads the library built for the first (each
-    built its own before: about a minute for the LGVI's four steps); other constants, or GEMM templates, build
-    another."""
+    built its own before: about half a minute for the LGVI's four steps); GEMM templates build another (other constants
+    do: test_programs_that_differ_only_in_their_constants_compute_with_their_own)."""
     import time
 
     import torch._inductor
@@ -113,8 +113,5 @@ def test_an_ahead_of_time_library_is_built_once_and_loaded_by_later_programs(mon
     first = compile_program(lambda x: torch.tanh(x @ W), [x], direct=True)
     again = compile_program(lambda x: torch.tanh(x @ W), [x], direct=True)
     assert len(builds) == 1 and torch.equal(first(x), again(x)) and torch.allclose(again(x), torch.tanh(x @ W))
-    W2 = W.flip(0)
-    other = compile_program(lambda x: torch.tanh(x @ W2), [x], direct=True)
-    assert len(builds) == 2 and torch.allclose(other(x), torch.tanh(x @ W2))
-    compile_program(lambda x: torch.tanh(x @ W), [x], direct=True, gemm_templates=True)
-    assert len(builds) == 3
+    templated = compile_program(lambda x: torch.tanh(x @ W), [x], direct=True, gemm_templates=True)
+    assert len(builds) == 2 and torch.allclose(templated(x), torch.tanh(x @ W), atol=1e-6)

@@ -231,8 +231,7 @@ class SurrogateTask:
     def check_duration(self, duration) -> None:
         """ValueError unless ``duration`` (s) is None (a scene's own) or a finite time of at least one step
         ``delta`` (rounded to whole steps as the rollouts do: a shorter one gives no frame to predict)."""
-        if duration is not None and not (is_finite_real(duration)
-                                         and round(duration / self.delta) >= 1):
+        if duration is not None and not (is_finite_real(duration) and round(duration / self.delta) >= 1):
             raise ValueError(f"duration must be a time of at least one surrogate step ({self.delta:g} s on task "
                              f"{self.name!r}), or None for the scene's, got {duration!r}")
 

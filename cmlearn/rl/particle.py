@@ -77,8 +77,7 @@ class ParticleParams:
             raise ValueError(f"need 0 <= mu_kinetic <= mu_static, got {self.mu_kinetic}, {self.mu_static}")
         if self.magnet_height - self.magnet_dims[2] / 2 <= self.particle_diameter:
             raise ValueError(f"magnet_height={self.magnet_height} leaves no gap above the particle")
-        if not is_int(self.magnet_dipoles) \
-                or self.magnet_dipoles < 1:
+        if not is_int(self.magnet_dipoles) or self.magnet_dipoles < 1:
             raise ValueError(f"magnet_dipoles must be an int >= 1, got {self.magnet_dipoles!r}")
 
     @property
