@@ -65,8 +65,8 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
     graph and its constants' values (:func:`_library_dir`: programs that differ only in their constants, two models
     of one architecture, are two libraries), built once and loaded from there by later programs and processes. Its
     inputs' sizes and strides are checked as the JIT wrapper checks them (``AOTI_RUNTIME_CHECK_INPUTS``, set here
-    unless set), strides of size-1 dimensions included. For the small
-    programs of a real-time step; the Cosserat solver's long programs keep the default path.
+    unless set), strides of size-1 dimensions included. For the small programs of a real-time step; the Cosserat
+    solver's long programs keep the default path.
 
     ``fast_exp``: the C++ programs' vectorised ``exp`` as ATen's inline ``exp_u20`` (a degree-5 polynomial after
     range reduction; documented to 20 units in the last place, measured to 3.7e-7 relative, 3 units, on [-80, 80];
@@ -145,7 +145,7 @@ def compile_program(fn: Callable, inputs: Sequence[Tensor], gemm_templates: bool
 def _aot_library(gm, inputs: list, options: dict) -> str:
     """The path of the ahead-of-time library for ``gm`` in its folder (:func:`_library_dir`): the one built there
     before, named in the folder's ``library`` file once it was built, else a new build (a Simulation III step
-    takes seconds, the LGVI's four steps about a minute: each program, process and test built its own before)."""
+    takes seconds, the LGVI's four steps half a minute: each program, process and test built its own before)."""
     folder = options["aot_inductor.output_path"]
     record = os.path.join(folder, "library")
     try:
@@ -158,7 +158,7 @@ def _aot_library(gm, inputs: list, options: dict) -> str:
     path = torch._inductor.aot_compile(gm, tuple(inputs), options={**options, "aot_inductor.package": False})
     tmp = f"{record}.{os.getpid()}.tmp"  # written whole, then renamed: a reader sees no half name
     with open(tmp, "w") as f:
-        f.write(os.path.basename(path))
+        f.write(os.path.relpath(path, folder))
     os.replace(tmp, record)
     return path
 
