@@ -117,4 +117,3 @@ class FrameSolve:
         self._fkey = flat[0], w.shape, chord is None or chord.shape, tensor_versions(self.solver.params)
         self._fprm = self.solver.params
         return True
-

@@ -15,7 +15,6 @@ A scene started at the result stays at rest up to round-off.
 """
 from __future__ import annotations
 
-
 import numpy as np
 import scipy.optimize
 import torch

@@ -20,20 +20,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .checks import as_real as _real, is_int
+from .checks import as_real as _real, is_int, positive
 
 __all__ = [
     "Material", "CircularSection", "SquareSection", "Magnet", "Rod", "RodParams", "StabilityEstimate",
 ]
 
 _SQUARE_TORSION = 0.1406  # Saint-Venant torsion constant of a square: J_t = 0.1406 a^4
-
-
-def _finite_positive(name: str, value: float) -> float:
-    v = _real(name, value)
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
-    return v
 
 
 def finite_vector(name: str, v, n: int = 3) -> tuple[float, ...]:
@@ -57,14 +50,14 @@ class Material:
     G: float | None = None
 
     def __post_init__(self):
-        _finite_positive("Material.E (Young's modulus, Pa)", self.E)
-        _finite_positive("Material.density (kg/m^3)", self.density)
+        positive("Material.E (Young's modulus, Pa)", self.E)
+        positive("Material.density (kg/m^3)", self.density)
         if self.nu is None and self.G is None:
             raise ValueError("Material: give the Poisson ratio nu or the shear modulus G")
         if self.nu is not None and not (-1.0 < _real("Material.nu (Poisson ratio)", self.nu) <= 0.5):
             raise ValueError(f"Material.nu (Poisson ratio) must lie in (-1, 0.5], got {self.nu!r}")
         if self.G is not None:
-            _finite_positive("Material.G (shear modulus, Pa)", self.G)
+            positive("Material.G (shear modulus, Pa)", self.G)
             if self.nu is not None and not math.isclose(self.G, self.shear_modulus_from_nu, rel_tol=1e-6):
                 raise ValueError(
                     f"Material: G={self.G} is inconsistent with E={self.E}, nu={self.nu} "
@@ -85,7 +78,7 @@ class CircularSection:
     diameter: float
 
     def __post_init__(self):
-        _finite_positive("CircularSection.diameter (m)", self.diameter)
+        positive("CircularSection.diameter (m)", self.diameter)
 
     @property
     def area(self) -> float:
@@ -113,7 +106,7 @@ class SquareSection:
     edge: float
 
     def __post_init__(self):
-        _finite_positive("SquareSection.edge (m)", self.edge)
+        positive("SquareSection.edge (m)", self.edge)
 
     @property
     def area(self) -> float:
@@ -239,7 +232,7 @@ class Rod:
     intrinsic_curvature: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
-        _finite_positive("Rod.length (m)", self.length)
+        positive("Rod.length (m)", self.length)
         if not isinstance(self.section, (CircularSection, SquareSection)):
             raise TypeError(f"Rod.section must be CircularSection or SquareSection, got {type(self.section)}")
         if not isinstance(self.material, Material):
@@ -264,9 +257,9 @@ class Rod:
                 raise TypeError(f"Rod.magnets must be Magnet instances, got {type(m)}")
             if m.s > self.length * (1 + 1e-12):
                 raise ValueError(f"Magnet at s={m.s} m lies outside the rod (length {self.length} m)")
-        _finite_positive("Rod.shear_coefficient", self.shear_coefficient)
-        _finite_positive("Rod.modulus_scale", self.modulus_scale)
-        _finite_positive("Rod.rotational_inertia_scale", self.rotational_inertia_scale)
+        positive("Rod.shear_coefficient", self.shear_coefficient)
+        positive("Rod.modulus_scale", self.modulus_scale)
+        positive("Rod.rotational_inertia_scale", self.rotational_inertia_scale)
         for nm in ("damping", "rotational_damping"):
             v = getattr(self, nm)
             if not math.isfinite(v) or v < 0:

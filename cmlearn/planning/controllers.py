@@ -25,6 +25,7 @@ import numbers
 import numpy as np
 
 from physics.checks import is_finite_real, is_int
+
 from .attractor import AttractorDynamics, Superellipse
 from .errt import ERRT, segment_hits
 from .quadtree import quadtree_rectangles

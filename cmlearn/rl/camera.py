@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from physics.checks import is_finite_real
+
 from .maps import Map
 
 __all__ = ["CameraSpec", "PybulletCamera"]

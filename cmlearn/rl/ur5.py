@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from physics.checks import check_rotations, is_finite_real
+
 from ..io import write_text_atomic
 
 __all__ = ["UR5", "IKError", "DH_D", "DH_A", "DH_ALPHA", "DOWN", "JOINT_SPEED", "TOOL_SPEED", "ur5_urdf", "write_urdf"]
@@ -136,7 +137,7 @@ class UR5:
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         if fallback not in (None, "pybullet"):
             raise ValueError(f"fallback must be None or 'pybullet', got {fallback!r}")
-        self.tool_length, self.tol, self.max_joint_step, self.fallback = float(tool_length), tol, max_joint_step, fallback
+        self.tool_length, self.tol, self.max_joint_step, self.fallback = tool_length, tol, max_joint_step, fallback
         self.limits = LIMITS.copy()
         self._tool = np.eye(4)
         self._tool[2, 3] = tool_length

@@ -66,10 +66,8 @@ class DeviationWindows(Dataset):
     def __init__(self, s: torch.Tensor, d: torch.Tensor, ranges, eta: int, increments: int, horizon: int,
                  stride: int = 1):
         # horizon 0 gave empty targets (a NaN loss), eta -1 an empty history, stride 0 range()'s error
-        for name, v, lo in (("eta", eta, 0), ("increments", increments, 1), ("horizon", horizon, 1),
-                            ("stride", stride, 1)):
-            check_integer(f"DeviationWindows: {name}", v, lo)
-        eta, increments, horizon, stride = int(eta), int(increments), int(horizon), int(stride)
+        eta, increments, horizon, stride = (check_integer(f"DeviationWindows: {name}", v, lo) for name, v, lo in (
+            ("eta", eta, 0), ("increments", increments, 1), ("horizon", horizon, 1), ("stride", stride, 1)))
         self.s, self.d, self.eta, self.n, self.H = s.float(), d.float(), eta, increments, horizon
         lead = max(eta, increments - 1)
         self.starts = [(v, k) for v, a, b in ranges for k in range(max(a, lead), b - horizon + 1, stride)]
