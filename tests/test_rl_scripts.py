@@ -1,11 +1,12 @@
 """Smoke runs of the environment benchmark and the controller evaluation with tiny budgets."""
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from forked_scripts import run_python
 
 ROOT = Path(__file__).resolve().parents[1]
 pytest.importorskip("pybullet")
@@ -14,7 +15,7 @@ pytest.importorskip("gymnasium")
 
 def run_script(args, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "CMLEARN_CACHE": str(tmp_path / "cache")}
-    out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    out = run_python(args, tmp_path, env)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -68,8 +69,7 @@ def test_train_agent_bad_config_is_a_usage_error(tmp_path):
     for args, name in ((["--gamma", "1.5"], "gamma"), (["--network", '{"bogus": 1}'], "bogus"),
                        (["--batch-size", "64", "--buffer-size", "32"], "batch_size"),
                        (["--quick", "--ship", "agent.json"], "--ship")):
-        out = subprocess.run([sys.executable, str(ROOT / "scripts/train_agent.py"), "--out", "run", *args],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        out = run_python([str(ROOT / "scripts/train_agent.py"), "--out", "run", *args], tmp_path, env, timeout=300)
         assert out.returncode == 2 and "usage:" in out.stderr and name in out.stderr, out.stderr[-2000:]
         assert "Traceback" not in out.stderr
 
@@ -82,9 +82,8 @@ def test_eval_controllers_checks_controllers_and_agent_before_running(tmp_path):
     for controllers, extra, message in (("attractor,bogus", [], "unknown controller 'bogus'"),
                                         ("attractor,iqn", [], "--agent: missing.pt: no such agent checkpoint"),
                                         ("attractor", ["--plots", "-1"], "argument --plots: must be >= 0, got '-1'")):
-        out = subprocess.run([sys.executable, str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1",
-                              "--train-maps", "1", "--unseen-maps", "1", "--controllers", controllers,
-                              "--agent", "missing.pt", "--out", "ev", *extra],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        out = run_python([str(ROOT / "scripts/eval_controllers.py"), "--quick", "--episodes", "1", "--train-maps", "1",
+                          "--unseen-maps", "1", "--controllers", controllers, "--agent", "missing.pt", "--out", "ev",
+                          *extra], tmp_path, env)
         assert out.returncode != 0 and message in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]
         assert "attractor" not in out.stdout and not (tmp_path / "ev").exists()  # nothing ran

@@ -11,13 +11,15 @@ from pathlib import Path
 import pytest
 import torch
 
+from forked_scripts import run_python
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(args, tmp_path) -> subprocess.CompletedProcess:
-    """``python ARGS`` in ``tmp_path`` with the repository importable."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    """``python ARGS`` in ``tmp_path`` with the repository importable (forked from a process that has imported
+    the libraries: tests/forked_scripts.py)."""
+    return run_python(args, tmp_path, {**os.environ, "PYTHONPATH": str(ROOT)})
 
 
 def run_script(args, tmp_path):
