@@ -147,9 +147,10 @@ _server: _Server | None = None
 
 def run_python(argv: list, cwd, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
     """``subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True,
-    timeout=timeout)``, forked from the server (started on first use, one per test process)."""
+    timeout=timeout)``, forked from the server (started on first use, one per test process); that very call for
+    ``-c`` and off Linux."""
     global _server
-    if argv[0] == "-c":
+    if argv[0] == "-c" or not sys.platform.startswith("linux"):  # forking after these imports is Linux-only here
         return subprocess.run([sys.executable, *map(str, argv)], cwd=cwd, env=env, capture_output=True, text=True,
                               timeout=timeout)
     if _server is None:

@@ -51,6 +51,43 @@ def parse_fails(script: str, argv: list[str], msg: str, capsys) -> None:
     assert e.value.code == 2 and msg in err, err[-500:]
 
 
+def test_a_forked_script_runs_as_a_fresh_interpreter_would(tmp_path):
+    """tests/forked_scripts.py, which runs the scripts of these tests: arguments, working directory, environment,
+    ``sys.path[0]``, the two streams, exit statuses (normal, ``sys.exit``, an exception), atexit handlers, a timeout
+    that kills the script, and a module run with ``-m``."""
+    import subprocess
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "helper.py").write_text("VALUE = 41\n")
+    script = tmp_path / "sub" / "s.py"
+    script.write_text(
+        "import atexit, json, os, sys, time\n"
+        "import helper\n"  # the script's own folder is importable, as sys.path[0]
+        "atexit.register(lambda: print('atexit ran'))\n"
+        "if sys.argv[1] == 'sleep':\n    time.sleep(60)\n"
+        "if sys.argv[1] == 'raise':\n    print('before'); raise ValueError('boom')\n"
+        "if sys.argv[1] == 'exit':\n    sys.exit('usage: bad')\n"
+        "print('to stderr', file=sys.stderr)\n"
+        "print(json.dumps({'argv': sys.argv, 'cwd': os.getcwd(), 'env': os.environ.get('FORK_T'), 'helper': "
+        "helper.VALUE + 1, 'path0': sys.path[0], 'name': __name__}))\n")
+    env = {**os.environ, "FORK_T": "yes"}
+    out = run_python([str(script), "ok", "a b"], tmp_path, env)
+    assert out.returncode == 0 and out.stderr == "to stderr\n" and out.stdout.endswith("atexit ran\n")
+    assert json.loads(out.stdout.splitlines()[0]) == {"argv": [str(script), "ok", "a b"], "cwd": str(tmp_path),
+                                                      "env": "yes", "helper": 42, "path0": str(tmp_path / "sub"),
+                                                      "name": "__main__"}
+    unset = run_python([str(script), "ok"], tmp_path, {k: v for k, v in env.items() if k != "FORK_T"})
+    assert json.loads(unset.stdout.splitlines()[0])["env"] is None  # the request's environment, not the last one's
+    bad = run_python([str(script), "raise"], tmp_path, env)
+    assert bad.returncode == 1 and "ValueError: boom" in bad.stderr and bad.stdout == "before\natexit ran\n"
+    ex = run_python([str(script), "exit"], tmp_path, env)
+    assert ex.returncode == 1 and ex.stderr == "usage: bad\n"
+    with pytest.raises(subprocess.TimeoutExpired):
+        run_python([str(script), "sleep"], tmp_path, env, timeout=2)
+    assert run_python([str(script), "ok"], tmp_path, env).returncode == 0  # the server goes on after a timeout
+    mod = run_python(["-m", "cmlearn", "--version"], ROOT, env)
+    assert mod.returncode == 0 and mod.stdout.strip(), mod.stderr
+
+
 SCRIPTS = sorted(str(p.relative_to(ROOT / "scripts").with_suffix("")) for p in (ROOT / "scripts").rglob("*.py"))
 
 

@@ -151,7 +151,7 @@ def simulate_task(task: SurrogateTask | str, n_variants: int, seed: int = 0, dur
     (:func:`lgvi_frames`), not for a task with a module of its own."""
     from dataclasses import replace
     task = get_task(task) if isinstance(task, str) else task
-    if not (isinstance(n_variants, int) and not isinstance(n_variants, bool) and n_variants >= 1):
+    if not (is_int(n_variants) and n_variants >= 1):
         raise ValueError(f"n_variants must be an integer >= 1 (the printed scene and random variants), got "
                          f"{n_variants!r}")
     if not (is_int(seed) and seed >= 0):
