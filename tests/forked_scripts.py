@@ -48,8 +48,6 @@ def _child(req: dict, requests, replies) -> None:
     requests.close()
     replies.close()
     os.setsid()  # a timeout kills the script with whatever it started
-    null = os.open(os.devnull, os.O_RDONLY)
-    os.dup2(null, 0)
     for fd, path in ((1, req["stdout"]), (2, req["stderr"])):
         f = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         os.dup2(f, fd)
@@ -59,14 +57,11 @@ def _child(req: dict, requests, replies) -> None:
     os.environ.update(req["env"])
     argv = req["argv"]
     if argv[0] == "-m":
-        sys.argv = [argv[1], *argv[2:]]
-        sys.path[0] = os.getcwd()
+        sys.argv, sys.path[0] = argv[1:], os.getcwd()
         runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
     else:
-        script = os.path.abspath(argv[0])
-        sys.argv = [argv[0], *argv[1:]]
-        sys.path[0] = os.path.dirname(os.path.realpath(script))
-        runpy.run_path(script, run_name="__main__")
+        sys.argv, sys.path[0] = argv, os.path.dirname(os.path.realpath(argv[0]))
+        runpy.run_path(argv[0], run_name="__main__")
     raise SystemExit(0)  # an exception or sys.exit in the script ends the child as it ends an interpreter
 
 
@@ -74,7 +69,9 @@ def serve() -> None:
     """Read one JSON request per line on stdin; answer ``{"pid": ...}`` when the child starts and ``{"rc": ...}``
     when it ends."""
     rfd, wfd = os.dup(0), os.dup(1)
-    os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)  # the children's stdin
+    os.close(null)
     os.dup2(2, 1)  # what an import prints goes to the server's stderr, not into the replies
     _preload()
     threads = len(os.listdir("/proc/self/task"))
@@ -102,7 +99,6 @@ class _Server:
         with open(self.log, "w") as log:
             self.proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                          stderr=log, env=env, text=True, bufsize=1)
-        self.calls = 0
         if self._reply(300) != {"ready": True}:
             raise RuntimeError(f"forked_scripts: the server did not start: {Path(self.log).read_text()[-2000:]}")
         atexit.register(self.close)
@@ -117,8 +113,7 @@ class _Server:
         return json.loads(line)
 
     def run(self, argv: list[str], cwd, env: dict, timeout: float) -> subprocess.CompletedProcess:
-        self.calls += 1
-        out, err = (os.path.join(self.tmp.name, f"{self.calls}.{s}") for s in ("out", "err"))
+        out, err = (os.path.join(self.tmp.name, s) for s in ("out", "err"))  # one script at a time
         req = {"argv": [str(a) for a in argv], "cwd": str(cwd), "env": dict(env), "stdout": out, "stderr": err}
         self.proc.stdin.write(json.dumps(req) + "\n")
         self.proc.stdin.flush()

@@ -55,7 +55,6 @@ def test_a_forked_script_runs_as_a_fresh_interpreter_would(tmp_path):
     """tests/forked_scripts.py, which runs the scripts of these tests: arguments, working directory, environment,
     ``sys.path[0]``, the two streams, exit statuses (normal, ``sys.exit``, an exception), atexit handlers, a timeout
     that kills the script, and a module run with ``-m``."""
-    import subprocess
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "helper.py").write_text("VALUE = 41\n")
     script = tmp_path / "sub" / "s.py"
